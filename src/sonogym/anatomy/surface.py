@@ -1,0 +1,181 @@
+"""The back's skin: height map, smoothed inward normals, and the surface pose of a probe.
+
+The skin over the back is the surface y = h(x, z) (the patient lies prone; y is anterior, so the
+back is the smallest-y body surface). ``SkinSurface`` stores h on the patient's (x, z) voxel grid
+with sub-voxel accuracy and answers batched bilinear queries at any (x, z) in metres.
+
+Surface command (DESIGN.md §4, §5): (x, z, yaw, tilt) ->
+  * z_U0 = inward normal n(x, z) (smoothed, so a 75 mm probe face sees a stable direction);
+  * x_proj = (cos yaw, 0, sin yaw): yaw is the angle of the probe's lateral axis x_U in the
+    frontal plane, from +x_P toward +z_P;
+  * y_U0 = unit(z_U0 x x_proj), x_U = y_U0 x z_U0;
+  * tilt rotates about x_U: y_U = y_U0 cos t + z_U0 sin t, z_U = z_U0 cos t - y_U0 sin t;
+  * the probe-face centre sits on the skin point (x, h(x, z), z).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from sonogym.geometry import normalize
+
+if TYPE_CHECKING:
+    from sonogym.anatomy.patient import Patient
+
+#: HU halfway between air (-1000) and soft tissue (~0): where the skin crosses.
+SKIN_HU_THRESHOLD = -500.0
+
+
+class SkinSurface:
+    """Batched queries of the back's skin surface.
+
+    Args:
+        height: (NX, NZ) skin y in metres at grid nodes x0 + i*dx, z0 + k*dz.
+        x0, z0: grid origin, metres.
+        dx, dz: grid spacing, metres.
+        normal_sigma: Gaussian smoothing (metres) of the height map before normals are taken.
+    """
+
+    def __init__(
+        self,
+        height: torch.Tensor | np.ndarray,
+        x0: float,
+        z0: float,
+        dx: float,
+        dz: float,
+        normal_sigma: float = 0.008,
+    ) -> None:
+        h = np.asarray(height, dtype=np.float64)
+        if h.ndim != 2 or min(h.shape) < 2:
+            raise ValueError(f"height map must be 2-D with at least 2x2 nodes, got {h.shape}")
+        if not np.isfinite(h).all():
+            raise ValueError("height map has NaN/inf; fill columns without skin first")
+        self.x0, self.z0, self.dx, self.dz = float(x0), float(z0), float(dx), float(dz)
+        self.normal_sigma = float(normal_sigma)
+        hs = ndimage.gaussian_filter(h, (normal_sigma / dx, normal_sigma / dz), mode="nearest")
+        dh_dx, dh_dz = np.gradient(hs, dx, dz)
+        n = np.stack([-dh_dx, np.ones_like(hs), -dh_dz], -1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        # (NX, NZ, 4): height + inward normal, so one gather serves both queries.
+        self._table = torch.from_numpy(np.concatenate([h[..., None], n], -1)).float()
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def from_patient(cls, patient: Patient, normal_sigma: float = 0.008) -> SkinSurface:
+        """Skin height from the first body voxel of each (x, z) column, refined to the sub-voxel
+        crossing of the CT through -500 HU (partial-volume accurate)."""
+        labels = patient.labels.numpy()
+        ct = patient.ct.numpy()
+        body = labels > 0
+        has = body.any(axis=1)
+        if not has.any():
+            raise ValueError(f"{patient.name}: label map has no body voxels; cannot find the skin")
+        first = body.argmax(axis=1)  # (X, Z)
+        ny = ct.shape[1]
+        # CT values at rows first-2 .. first+2 of every column.
+        offs = np.arange(-2, 3)
+        rows = np.clip(first[..., None] + offs, 0, ny - 1)  # (X, Z, 5)
+        vals = np.take_along_axis(ct.transpose(0, 2, 1), rows, axis=2)
+        below = vals[..., :-1] < SKIN_HU_THRESHOLD
+        above = vals[..., 1:] >= SKIN_HU_THRESHOLD
+        cross = below & above
+        k = np.where(cross.any(-1), cross.argmax(-1), 2)  # fallback: the first body row
+        v0 = np.take_along_axis(vals, k[..., None], 2)[..., 0]
+        v1 = np.take_along_axis(vals, k[..., None] + 1, 2)[..., 0]
+        frac = np.where(
+            cross.any(-1), np.clip((SKIN_HU_THRESHOLD - v0) / np.maximum(v1 - v0, 1e-6), 0, 1), 0.5
+        )
+        row = first + offs[k] + frac  # fractional row of the crossing
+        row = np.where(cross.any(-1), row, first - 0.5)
+        if not has.all():  # columns beside the body: nearest column's height
+            idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+            row = row[idx[0], idx[1]]
+        sp, org = patient.spacing, patient.origin
+        height = org[1] + row * sp[1]
+        return cls(height, org[0], org[2], sp[0], sp[2], normal_sigma)
+
+    def to(self, device: torch.device | str) -> SkinSurface:
+        """Move the lookup table to a device (in place); returns self."""
+        self._table = self._table.to(device)
+        return self
+
+    @property
+    def device(self) -> torch.device:
+        return self._table.device
+
+    # ---------------------------------------------------------------- queries
+    @property
+    def x_range(self) -> tuple[float, float]:
+        return self.x0, self.x0 + self.dx * (self._table.shape[0] - 1)
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return self.z0, self.z0 + self.dz * (self._table.shape[1] - 1)
+
+    def _lookup(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Bilinear (..., 4) [height, nx, ny, nz]; queries outside the grid clamp to its edge."""
+        t = self._table
+        nx, nz = t.shape[0], t.shape[1]
+        fx = ((x - self.x0) / self.dx).clamp(0, nx - 1)
+        fz = ((z - self.z0) / self.dz).clamp(0, nz - 1)
+        i0 = fx.floor().clamp(max=nx - 2).long()
+        k0 = fz.floor().clamp(max=nz - 2).long()
+        wx = (fx - i0).unsqueeze(-1).to(t.dtype)
+        wz = (fz - k0).unsqueeze(-1).to(t.dtype)
+        v00, v10 = t[i0, k0], t[i0 + 1, k0]
+        v01, v11 = t[i0, k0 + 1], t[i0 + 1, k0 + 1]
+        return (v00 * (1 - wx) + v10 * wx) * (1 - wz) + (v01 * (1 - wx) + v11 * wx) * wz
+
+    def height(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Skin y (metres) at (x, z), any matching shapes."""
+        return self._lookup(x, z)[..., 0]
+
+    def normal(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(..., 3) unit inward normals (into the body, +y mostly) at (x, z)."""
+        return normalize(self._lookup(x, z)[..., 1:])
+
+    def point(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(..., 3) skin points at (x, z)."""
+        return torch.stack([x, self.height(x, z), z], -1)
+
+    def surface_pose(
+        self,
+        x: torch.Tensor,
+        z: torch.Tensor,
+        yaw: torch.Tensor,
+        tilt: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Surface command -> probe pose in {P}.
+
+        Returns (pos (..., 3), rot (..., 3, 3)); rot's columns are x_U, y_U, z_U, z_U along the
+        (tilted) inward normal, pos = probe-face centre on the skin.
+        """
+        look = self._lookup(x, z)
+        z0 = normalize(look[..., 1:])
+        x_proj = torch.stack([torch.cos(yaw), torch.zeros_like(yaw), torch.sin(yaw)], -1).to(z0)
+        y0 = normalize(torch.linalg.cross(z0, x_proj))
+        xu = torch.linalg.cross(y0, z0)
+        if tilt is None:
+            yu, zu = y0, z0
+        else:
+            c, s = torch.cos(tilt).unsqueeze(-1).to(z0), torch.sin(tilt).unsqueeze(-1).to(z0)
+            yu, zu = y0 * c + z0 * s, z0 * c - y0 * s
+        pos = torch.stack([x.to(z0), look[..., 0], z.to(z0)], -1)
+        return pos, torch.stack([xu, yu, zu], -1)
+
+    def command_from_pose(
+        self, pos: torch.Tensor, rot: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Measured surface command (x, z, yaw, tilt) of a probe pose; inverse of surface_pose
+        for poses on the surface. yaw in [0, 2*pi)."""
+        x, z = pos[..., 0], pos[..., 2]
+        xu, zu = rot[..., :, 0], rot[..., :, 2]
+        yaw = torch.remainder(torch.atan2(xu[..., 2], xu[..., 0]), 2 * torch.pi)
+        n = self.normal(x, z)
+        y0 = normalize(torch.linalg.cross(n, xu))
+        tilt = torch.atan2(-(zu * y0).sum(-1), (zu * n).sum(-1))
+        return x, z, yaw, tilt

@@ -1,0 +1,151 @@
+"""Batched rotation and pose helpers (torch). Quaternions are (w, x, y, z); poses are 4x4.
+
+Shared by every layer, so it imports nothing from sonogym.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def normalize(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Unit vectors along the last axis."""
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Wrap angles to [-pi, pi)."""
+    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
+
+def quat_from_matrix(r: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (w, x, y, z) with w >= 0."""
+    m = r
+    t = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    # Four candidate formulas; pick per element the numerically largest denominator.
+    q_w = torch.stack(
+        [1 + t, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
+        -1,
+    )
+    q_x = torch.stack(
+        [
+            m[..., 2, 1] - m[..., 1, 2],
+            1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+            m[..., 0, 1] + m[..., 1, 0],
+            m[..., 0, 2] + m[..., 2, 0],
+        ],
+        -1,
+    )
+    q_y = torch.stack(
+        [
+            m[..., 0, 2] - m[..., 2, 0],
+            m[..., 0, 1] + m[..., 1, 0],
+            1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+            m[..., 1, 2] + m[..., 2, 1],
+        ],
+        -1,
+    )
+    q_z = torch.stack(
+        [
+            m[..., 1, 0] - m[..., 0, 1],
+            m[..., 0, 2] + m[..., 2, 0],
+            m[..., 1, 2] + m[..., 2, 1],
+            1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+        ],
+        -1,
+    )
+    cands = torch.stack([q_w, q_x, q_y, q_z], -2)  # (..., 4, 4)
+    diag = torch.stack(
+        [
+            1 + t,
+            1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+            1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+            1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+        ],
+        -1,
+    )
+    best = diag.argmax(-1)
+    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = normalize(q)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def matrix_from_quat(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices."""
+    w, x, y, z = normalize(q).unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_from_axis_angle(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vectors (axis * angle, rad) -> (..., 3, 3) matrices (Rodrigues)."""
+    angle = v.norm(dim=-1, keepdim=True)
+    axis = v / angle.clamp_min(1e-12)
+    x, y, z = axis.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack(
+        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1), torch.stack([-y, x, zero], -1)],
+        -2,
+    )
+    s = torch.sin(angle)[..., None]
+    c = torch.cos(angle)[..., None]
+    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand(k.shape)
+    return eye + s * k + (1 - c) * (k @ k)
+
+
+def axis_angle_from_matrix(r: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi]."""
+    q = quat_from_matrix(r)
+    vec = q[..., 1:]
+    s = vec.norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(s, q[..., :1])
+    # angle/sin(angle/2) -> 2 as angle -> 0
+    scale = torch.where(s > 1e-8, angle / s.clamp_min(1e-12), torch.full_like(s, 2.0))
+    return vec * scale
+
+
+def make_pose(rot: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation and (..., 3) position -> (..., 4, 4) homogeneous pose."""
+    pose = torch.zeros(*pos.shape[:-1], 4, 4, dtype=pos.dtype, device=pos.device)
+    pose[..., :3, :3] = rot
+    pose[..., :3, 3] = pos
+    pose[..., 3, 3] = 1
+    return pose
+
+
+def invert_pose(pose: torch.Tensor) -> torch.Tensor:
+    """Inverse of (..., 4, 4) rigid poses."""
+    rot_t = pose[..., :3, :3].transpose(-1, -2)
+    return make_pose(rot_t, -(rot_t @ pose[..., :3, 3:4]).squeeze(-1))
+
+
+def rot_x(a: torch.Tensor) -> torch.Tensor:
+    """(...,) angles -> (..., 3, 3) rotations about x."""
+    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack(
+        [torch.stack([o, z, z], -1), torch.stack([z, c, -s], -1), torch.stack([z, s, c], -1)], -2
+    )
+
+
+def rot_y(a: torch.Tensor) -> torch.Tensor:
+    """(...,) angles -> (..., 3, 3) rotations about y."""
+    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack(
+        [torch.stack([c, z, s], -1), torch.stack([z, o, z], -1), torch.stack([-s, z, c], -1)], -2
+    )
+
+
+def rot_z(a: torch.Tensor) -> torch.Tensor:
+    """(...,) angles -> (..., 3, 3) rotations about z."""
+    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack(
+        [torch.stack([c, -s, z], -1), torch.stack([s, c, z], -1), torch.stack([z, z, o], -1)], -2
+    )

@@ -8,7 +8,7 @@ import torch
 from sonogym.anatomy.patient import Patient
 
 AIR, SOFT, MUSCLE, FAT, BONE = 0, 120, 86, 119, 28
-HU = {AIR: -1000.0, SOFT: 40.0, MUSCLE: 50.0, FAT: -100.0, BONE: 1400.0}
+HU = {AIR: -1000.0, SOFT: 40.0, MUSCLE: 50.0, FAT: -100.0, BONE: 1400.0, 122: 10.0}
 
 
 def layered_patient(

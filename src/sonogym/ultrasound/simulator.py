@@ -29,8 +29,10 @@ probe lost contact).
 
 ``physical`` -- the paper's full model with physical units:
 
-1. impedance Z from the label's tissue, refined by the CT: Z = Z_tissue * clip((1000 + HU) /
-   (1000 + HU_tissue), 1/(1 + k), 1 + k), k = 0.25 (density ~ 1000 + HU);
+1. impedance Z from the label's tissue; below an interface refined by the CT: Z = Z_tissue *
+   clip((1000 + HU) / (1000 + HU_tissue), 1/(1 + k), 1 + k), k = 0.25 (density ~ 1000 + HU),
+   HU the densest CT within 1.5 mm below (so a cortex reflects as cortex despite the
+   partial-volume ramp of the resampled CT);
 2. at label boundaries (indicator G), amplitude reflection R = (Z(y) - Z(y-1)) / (Z(y) + Z(y-1)),
    times cos(theta)^n, theta the angle between the beam and the boundary normal taken from the
    gradient of the tissue impedance map;
@@ -133,6 +135,7 @@ class PhysicalModel:
     backscatter_level: float = -30.0  # dB, RMS envelope of dense unit scatterers vs R = 1
     incidence_exponent: float = 1.0  # reflection ~ cos(theta)^n (paper: n = 1)
     ct_refinement: float = 0.25  # impedance may change by a factor 1/(1+k) .. 1+k from the CT
+    ct_window: float = 1.5e-3  # m; the CT refining an interface is the max this far below it
     large_scale_amplitude: float = 0.08
     large_scale_cell: float = 15e-3  # m
     speckle_cell: float = 0.5e-3  # m
@@ -273,6 +276,7 @@ class ModelBasedSimulator:
             # air (1000 + HU = 0) just clamps: its impedance is ~0 either way
             k["inv_ref"] = (1.0 / (1000.0 + tab.column("hu")).clamp(min=1.0)).float().to(dev)
             k["z_gel"] = float(tab.params(GEL).impedance)
+            k["ct_rows"] = max(1, int(round(m.ct_window / dz)))
             sa, sl = m.axial_sigma, m.lateral_sigma
             axial = _psf.gaussian_taps(sa, dz, m.psf_truncation * sa)  # peak 1
             lateral = _psf.scaled(_psf.gaussian_taps(sl, dx, m.psf_truncation * sl), 1.0)
@@ -443,23 +447,30 @@ class ModelBasedSimulator:
         g = k["gel_rows"]
         z_gel = k["z_gel"]
         flat_lab = lab.view(-1)
-        # Tissue impedance, and the impedance refined by the CT (density ~ 1000 + HU).
+        # Tissue impedance Z_l, and below each interface the impedance refined by the CT
+        # (density ~ 1000 + HU), read as the densest CT within ``ct_window`` below the pixel so
+        # that the partial-volume ramp of a resampled CT does not dim the interface.
         zl = self._buf("zl", ct)
         torch.index_select(k["z"], 0, flat_lab, out=zl.view(-1))
         z = self._buf("z", ct)
+        z.copy_(ct)
+        h = ct.shape[1]
+        for d in range(1, min(k["ct_rows"], h)):
+            torch.maximum(z[:, : h - d], ct[:, d:], out=z[:, : h - d])
         tmp = self._buf("t", ct)
         torch.index_select(k["inv_ref"], 0, flat_lab, out=tmp.view(-1))
-        torch.add(ct, 1000.0, out=z).mul_(tmp)
+        z.add_(1000.0).mul_(tmp)
         kk = m.ct_refinement
         z.clamp_(1.0 / (1.0 + kk), 1.0 + kk)
         if g:
             z[:, :g].masked_fill_(self._gel_mask(ct, lab, g), 1.0)
         z.mul_(zl)
-        # Amplitude reflection R = (Z - Zu) / (Z + Zu) at label boundaries (G); gel above row 0.
+        # Amplitude reflection R = (Z - Z_l,up) / (Z + Z_l,up) at label boundaries (G); gel
+        # above row 0.
         refl = self._buf("r", ct)
-        torch.sub(z[:, 1:], z[:, :-1], out=refl[:, 1:])
+        torch.sub(z[:, 1:], zl[:, :-1], out=refl[:, 1:])
         torch.sub(z[:, 0], z_gel, out=refl[:, 0])
-        torch.add(z[:, 1:], z[:, :-1], out=tmp[:, 1:])
+        torch.add(z[:, 1:], zl[:, :-1], out=tmp[:, 1:])
         torch.add(z[:, 0], z_gel, out=tmp[:, 0])
         refl.div_(tmp)
         edge = self._buf("edge", ct, torch.bool)

@@ -6,9 +6,10 @@ with sub-voxel accuracy and answers batched bilinear queries at any (x, z) in me
 
 Surface command (DESIGN.md §4, §5): (x, z, yaw, tilt) ->
   * z_U0 = inward normal n(x, z) (smoothed, so a 75 mm probe face sees a stable direction);
-  * x_proj = (cos yaw, 0, sin yaw): yaw is the angle of the probe's lateral axis x_U in the
-    frontal plane, from +x_P toward +z_P;
-  * y_U0 = unit(z_U0 x x_proj), x_U = y_U0 x z_U0;
+  * x_U = the tangent vector whose frontal-plane (x-z) projection points along
+    (cos yaw, 0, sin yaw): yaw is exactly the angle of the probe's lateral axis in the frontal
+    plane, from +x_P toward +z_P (DESIGN.md §5), whatever the skin's slope;
+  * y_U0 = z_U0 x x_U;
   * tilt rotates about x_U: y_U = y_U0 cos t + z_U0 sin t, z_U = z_U0 cos t - y_U0 sin t;
   * the probe-face centre sits on the skin point (x, h(x, z), z).
 """
@@ -156,14 +157,16 @@ class SkinSurface:
         """
         look = self._lookup(x, z)
         z0 = normalize(look[..., 1:])
-        x_proj = torch.stack([torch.cos(yaw), torch.zeros_like(yaw), torch.sin(yaw)], -1).to(z0)
-        y0 = normalize(torch.linalg.cross(z0, x_proj))
-        xu = torch.linalg.cross(y0, z0)
+        c, s = torch.cos(yaw).to(z0), torch.sin(yaw).to(z0)
+        # Lift (cos yaw, ., sin yaw) onto the tangent plane along y (n_y > 0 on the back).
+        t = -(c * z0[..., 0] + s * z0[..., 2]) / z0[..., 1]
+        xu = normalize(torch.stack([c, t, s], -1))
+        y0 = torch.linalg.cross(z0, xu)
         if tilt is None:
             yu, zu = y0, z0
         else:
-            c, s = torch.cos(tilt).unsqueeze(-1).to(z0), torch.sin(tilt).unsqueeze(-1).to(z0)
-            yu, zu = y0 * c + z0 * s, z0 * c - y0 * s
+            ct, st = torch.cos(tilt).unsqueeze(-1).to(z0), torch.sin(tilt).unsqueeze(-1).to(z0)
+            yu, zu = y0 * ct + z0 * st, z0 * ct - y0 * st
         pos = torch.stack([x.to(z0), look[..., 0], z.to(z0)], -1)
         return pos, torch.stack([xu, yu, zu], -1)
 

@@ -66,3 +66,20 @@ def test_transverse_goal_pose_points_into_the_body(small_phantom):
     assert rot[0, 0, 0] < -0.9  # x_U toward -x
     batched = small_phantom.skin.height(torch.zeros(3, 4), torch.zeros(3, 4))
     assert batched.shape == (3, 4)
+
+
+def test_stacked_surfaces_answer_per_patient():
+    x = np.arange(40) * 0.002 - 0.04
+    flat = SkinSurface(np.full((40, 30), -0.1), -0.04, -0.03, 0.002, 0.002)
+    sloped = SkinSurface(-0.08 + 0.1 * x[:, None] + 0 * x[None, :20], -0.04, -0.02, 0.002, 0.002)
+    both = SkinSurface.stack([flat, sloped])
+    assert both.num_patients == 2
+    qx, qz = torch.tensor([0.01, 0.01, 0.0]), torch.tensor([0.0, 0.0, 0.0])
+    pid = torch.tensor([0, 1, 1])
+    h = both.height(qx, qz, pid)
+    assert torch.allclose(h, torch.tensor([-0.1, -0.079, -0.08]), atol=1e-6)
+    pos, rot = both.surface_pose(qx, qz, torch.full((3,), math.pi), patient=pid)
+    assert torch.allclose(pos[:, 1], h)
+    assert torch.allclose(rot[0, :, 2], torch.tensor([0.0, 1.0, 0.0]), atol=1e-6)
+    assert rot[1, 0, 2] < -0.09  # sloped patient's normal leans toward -x
+    assert both.z_range(1) == (-0.02, -0.02 + 0.002 * 19)

@@ -23,9 +23,9 @@ def _root() -> None:
 @app.command()
 def phantom(
     seed: Annotated[int, typer.Option(help="Phantom seed (anatomy varies with it).")] = 0,
-    out: Annotated[Path, typer.Option(help="Folder to write the TotalSegmentator layout to.")] = Path(
-        "runs/phantom"
-    ),
+    out: Annotated[
+        Path, typer.Option(help="Folder to write the TotalSegmentator layout to.")
+    ] = Path("runs/phantom"),
     spacing: Annotated[float, typer.Option(help="Isotropic voxel size in mm (0.5-2.0).")] = 1.0,
     preview: Annotated[bool, typer.Option(help="Also write preview.png.")] = True,
     combined: Annotated[

@@ -26,7 +26,12 @@ def quat_from_matrix(r: torch.Tensor) -> torch.Tensor:
     t = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     # Four candidate formulas; pick per element the numerically largest denominator.
     q_w = torch.stack(
-        [1 + t, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
+        [
+            1 + t,
+            m[..., 2, 1] - m[..., 1, 2],
+            m[..., 0, 2] - m[..., 2, 0],
+            m[..., 1, 0] - m[..., 0, 1],
+        ],
         -1,
     )
     q_x = torch.stack(
@@ -92,7 +97,11 @@ def matrix_from_axis_angle(v: torch.Tensor) -> torch.Tensor:
     x, y, z = axis.unbind(-1)
     zero = torch.zeros_like(x)
     k = torch.stack(
-        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1), torch.stack([-y, x, zero], -1)],
+        [
+            torch.stack([zero, -z, y], -1),
+            torch.stack([z, zero, -x], -1),
+            torch.stack([-y, x, zero], -1),
+        ],
         -2,
     )
     s = torch.sin(angle)[..., None]

@@ -134,16 +134,16 @@ VERTEBRA_IDS: dict[str, int] = {
     name.removeprefix("vertebrae_"): i for i, name in TOTALSEG_V2.items() if "vertebrae_" in name
 }
 #: Every bone id (vertebrae, sacrum, pelvis, limbs, ribs, sternum, skull).
-BONE_IDS: frozenset[int] = frozenset(
-    [25, *range(26, 51), *range(69, 79), 91, *range(92, 117)]
-)
+BONE_IDS: frozenset[int] = frozenset([25, *range(26, 51), *range(69, 79), 91, *range(92, 117)])
 
 
 def label_id(name_or_id: str | int) -> int:
     """Id for a class name ("vertebrae_L4", "L4", "skin") or an id; raises with the known names."""
     if isinstance(name_or_id, int):
         if name_or_id not in LABELS:
-            raise KeyError(f"unknown label id {name_or_id}; ids are 1-122 (see sonogym.anatomy.labels)")
+            raise KeyError(
+                f"unknown label id {name_or_id}; ids are 1-122 (see sonogym.anatomy.labels)"
+            )
         return name_or_id
     if name_or_id in LABEL_IDS:
         return LABEL_IDS[name_or_id]

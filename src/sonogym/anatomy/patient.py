@@ -104,6 +104,10 @@ class Patient:
         org = torch.as_tensor(self.origin, dtype=p.dtype, device=p.device)
         return (p - org) / sp
 
+    def world_to_voxel_np(self, p: np.ndarray) -> np.ndarray:
+        """NumPy version of :meth:`world_to_voxel`."""
+        return (np.asarray(p) - self.origin) / self.spacing
+
     def mask(self, *names_or_ids: str | int) -> torch.Tensor:
         """Boolean mask of the union of the given structures."""
         from sonogym.anatomy.labels import label_id

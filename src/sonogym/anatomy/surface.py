@@ -6,9 +6,10 @@ with sub-voxel accuracy and answers batched bilinear queries at any (x, z) in me
 
 Surface command (DESIGN.md §4, §5): (x, z, yaw, tilt) ->
   * z_U0 = inward normal n(x, z) (smoothed, so a 75 mm probe face sees a stable direction);
-  * x_proj = (cos yaw, 0, sin yaw): yaw is the angle of the probe's lateral axis x_U in the
-    frontal plane, from +x_P toward +z_P;
-  * y_U0 = unit(z_U0 x x_proj), x_U = y_U0 x z_U0;
+  * x_U = the tangent vector whose frontal-plane (x-z) projection points along
+    (cos yaw, 0, sin yaw): yaw is exactly the angle of the probe's lateral axis in the frontal
+    plane, from +x_P toward +z_P (DESIGN.md §5), whatever the skin's slope;
+  * y_U0 = z_U0 x x_U;
   * tilt rotates about x_U: y_U = y_U0 cos t + z_U0 sin t, z_U = z_U0 cos t - y_U0 sin t;
   * the probe-face centre sits on the skin point (x, h(x, z), z).
 """
@@ -60,8 +61,39 @@ class SkinSurface:
         dh_dx, dh_dz = np.gradient(hs, dx, dz)
         n = np.stack([-dh_dx, np.ones_like(hs), -dh_dz], -1)
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        # (NX, NZ, 4): height + inward normal, so one gather serves both queries.
-        self._table = torch.from_numpy(np.concatenate([h[..., None], n], -1)).float()
+        # (P, NX, NZ, 4): height + inward normal, so one gather serves both queries; P patients
+        # (one here, several after ``stack``), each with its own grid in ``_grid``.
+        self._table = torch.from_numpy(np.concatenate([h[..., None], n], -1)).float()[None]
+        self._grid = torch.tensor([[x0, z0, dx, dz, h.shape[0], h.shape[1]]], dtype=torch.float64)
+
+    @classmethod
+    def stack(cls, surfaces: list[SkinSurface]) -> SkinSurface:
+        """One surface object answering for several patients: queries take ``patient`` (an
+        index tensor broadcastable to the query) to pick whose skin to use."""
+        if not surfaces:
+            raise ValueError("stack needs at least one SkinSurface")
+        tables = [t for s in surfaces for t in s._table]
+        nx = max(t.shape[0] for t in tables)
+        nz = max(t.shape[1] for t in tables)
+        padded = []
+        for t in tables:  # pad by edge replication (never read: lookups clamp to each grid)
+            t = torch.cat([t, t[-1:].expand(nx - t.shape[0], -1, -1)], 0)
+            padded.append(torch.cat([t, t[:, -1:].expand(-1, nz - t.shape[1], -1)], 1))
+        out = cls.__new__(cls)
+        out.x0, out.z0, out.dx, out.dz = (
+            surfaces[0].x0,
+            surfaces[0].z0,
+            surfaces[0].dx,
+            surfaces[0].dz,
+        )
+        out.normal_sigma = surfaces[0].normal_sigma
+        out._table = torch.stack(padded).to(surfaces[0].device)
+        out._grid = torch.cat([s._grid for s in surfaces]).to(surfaces[0].device)
+        return out
+
+    @property
+    def num_patients(self) -> int:
+        return self._table.shape[0]
 
     # ------------------------------------------------------------------ build
     @classmethod
@@ -101,6 +133,7 @@ class SkinSurface:
     def to(self, device: torch.device | str) -> SkinSurface:
         """Move the lookup table to a device (in place); returns self."""
         self._table = self._table.to(device)
+        self._grid = self._grid.to(device)
         return self
 
     @property
@@ -108,39 +141,54 @@ class SkinSurface:
         return self._table.device
 
     # ---------------------------------------------------------------- queries
-    @property
-    def x_range(self) -> tuple[float, float]:
-        return self.x0, self.x0 + self.dx * (self._table.shape[0] - 1)
+    def x_range(self, patient: int = 0) -> tuple[float, float]:
+        """(min, max) x of a patient's skin grid, metres."""
+        x0, _, dx, _, nx, _ = self._grid[patient].tolist()
+        return x0, x0 + dx * (nx - 1)
 
-    @property
-    def z_range(self) -> tuple[float, float]:
-        return self.z0, self.z0 + self.dz * (self._table.shape[1] - 1)
+    def z_range(self, patient: int = 0) -> tuple[float, float]:
+        """(min, max) z of a patient's skin grid, metres."""
+        _, z0, _, dz, _, nz = self._grid[patient].tolist()
+        return z0, z0 + dz * (nz - 1)
 
-    def _lookup(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def _lookup(
+        self, x: torch.Tensor, z: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Bilinear (..., 4) [height, nx, ny, nz]; queries outside the grid clamp to its edge."""
         t = self._table
-        nx, nz = t.shape[0], t.shape[1]
-        fx = ((x - self.x0) / self.dx).clamp(0, nx - 1)
-        fz = ((z - self.z0) / self.dz).clamp(0, nz - 1)
-        i0 = fx.floor().clamp(max=nx - 2).long()
-        k0 = fz.floor().clamp(max=nz - 2).long()
+        if patient is None:
+            p = torch.zeros(x.shape, dtype=torch.long, device=t.device)
+        else:
+            p = torch.as_tensor(patient, dtype=torch.long, device=t.device).expand(x.shape)
+        g = self._grid[p].to(x.dtype)  # (..., 6)
+        nx, nz = g[..., 4], g[..., 5]
+        fx = torch.minimum(((x - g[..., 0]) / g[..., 2]).clamp_min(0), nx - 1)
+        fz = torch.minimum(((z - g[..., 1]) / g[..., 3]).clamp_min(0), nz - 1)
+        i0 = torch.minimum(fx.floor(), nx - 2).long()
+        k0 = torch.minimum(fz.floor(), nz - 2).long()
         wx = (fx - i0).unsqueeze(-1).to(t.dtype)
         wz = (fz - k0).unsqueeze(-1).to(t.dtype)
-        v00, v10 = t[i0, k0], t[i0 + 1, k0]
-        v01, v11 = t[i0, k0 + 1], t[i0 + 1, k0 + 1]
+        v00, v10 = t[p, i0, k0], t[p, i0 + 1, k0]
+        v01, v11 = t[p, i0, k0 + 1], t[p, i0 + 1, k0 + 1]
         return (v00 * (1 - wx) + v10 * wx) * (1 - wz) + (v01 * (1 - wx) + v11 * wx) * wz
 
-    def height(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Skin y (metres) at (x, z), any matching shapes."""
-        return self._lookup(x, z)[..., 0]
+    def height(
+        self, x: torch.Tensor, z: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Skin y (metres) at (x, z), any matching shapes; ``patient`` indexes stacked skins."""
+        return self._lookup(x, z, patient)[..., 0]
 
-    def normal(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def normal(
+        self, x: torch.Tensor, z: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(..., 3) unit inward normals (into the body, +y mostly) at (x, z)."""
-        return normalize(self._lookup(x, z)[..., 1:])
+        return normalize(self._lookup(x, z, patient)[..., 1:])
 
-    def point(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def point(
+        self, x: torch.Tensor, z: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(..., 3) skin points at (x, z)."""
-        return torch.stack([x, self.height(x, z), z], -1)
+        return torch.stack([x, self.height(x, z, patient), z], -1)
 
     def surface_pose(
         self,
@@ -148,34 +196,37 @@ class SkinSurface:
         z: torch.Tensor,
         yaw: torch.Tensor,
         tilt: torch.Tensor | None = None,
+        patient: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Surface command -> probe pose in {P}.
 
         Returns (pos (..., 3), rot (..., 3, 3)); rot's columns are x_U, y_U, z_U, z_U along the
         (tilted) inward normal, pos = probe-face centre on the skin.
         """
-        look = self._lookup(x, z)
+        look = self._lookup(x, z, patient)
         z0 = normalize(look[..., 1:])
-        x_proj = torch.stack([torch.cos(yaw), torch.zeros_like(yaw), torch.sin(yaw)], -1).to(z0)
-        y0 = normalize(torch.linalg.cross(z0, x_proj))
-        xu = torch.linalg.cross(y0, z0)
+        c, s = torch.cos(yaw).to(z0), torch.sin(yaw).to(z0)
+        # Lift (cos yaw, ., sin yaw) onto the tangent plane along y (n_y > 0 on the back).
+        t = -(c * z0[..., 0] + s * z0[..., 2]) / z0[..., 1]
+        xu = normalize(torch.stack([c, t, s], -1))
+        y0 = torch.linalg.cross(z0, xu)
         if tilt is None:
             yu, zu = y0, z0
         else:
-            c, s = torch.cos(tilt).unsqueeze(-1).to(z0), torch.sin(tilt).unsqueeze(-1).to(z0)
-            yu, zu = y0 * c + z0 * s, z0 * c - y0 * s
+            ct, st = torch.cos(tilt).unsqueeze(-1).to(z0), torch.sin(tilt).unsqueeze(-1).to(z0)
+            yu, zu = y0 * ct + z0 * st, z0 * ct - y0 * st
         pos = torch.stack([x.to(z0), look[..., 0], z.to(z0)], -1)
         return pos, torch.stack([xu, yu, zu], -1)
 
     def command_from_pose(
-        self, pos: torch.Tensor, rot: torch.Tensor
+        self, pos: torch.Tensor, rot: torch.Tensor, patient: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Measured surface command (x, z, yaw, tilt) of a probe pose; inverse of surface_pose
         for poses on the surface. yaw in [0, 2*pi)."""
         x, z = pos[..., 0], pos[..., 2]
         xu, zu = rot[..., :, 0], rot[..., :, 2]
         yaw = torch.remainder(torch.atan2(xu[..., 2], xu[..., 0]), 2 * torch.pi)
-        n = self.normal(x, z)
+        n = self.normal(x, z, patient)
         y0 = normalize(torch.linalg.cross(n, xu))
         tilt = torch.atan2(-(zu * y0).sum(-1), (zu * n).sum(-1))
         return x, z, yaw, tilt

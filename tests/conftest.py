@@ -1,0 +1,22 @@
+"""Shared fixtures: one small (2 mm) phantom per test session keeps the suite fast."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+# One intra-op thread per xdist worker: two workers on two cores, no oversubscription.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
+
+from sonogym.anatomy import Patient, PhantomParams, make_phantom
+
+SMALL = PhantomParams(spacing=0.002)
+
+
+@pytest.fixture(scope="session")
+def small_phantom() -> Patient:
+    """Seed-0 phantom at 2 mm (built once per test process)."""
+    return make_phantom(0, SMALL)

@@ -5,6 +5,7 @@ import math
 
 import pytest
 import torch
+from scipy import ndimage
 from us_synthetic import FAT, MUSCLE, SOFT, block_patient, layered_patient, straight_down
 
 from sonogym.ultrasound import ModelBasedSimulator, PhysicalModel, Slicer
@@ -108,6 +109,7 @@ def _fat_over_muscle(slope: float):
     lab, ct = p.labels.clone(), p.ct.clone()
     lab[fat] = FAT
     ct[fat] = -100.0
+    ct = torch.from_numpy(ndimage.gaussian_filter(ct.numpy(), 0.7))  # partial volume, like a CT
     return type(p)(ct, lab, p.affine, name=f"oblique{slope}")
 
 

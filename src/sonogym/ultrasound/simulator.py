@@ -29,13 +29,15 @@ probe lost contact).
 
 ``physical`` -- the paper's full model with physical units:
 
-1. impedance Z from the label's tissue; below an interface refined by the CT: Z = Z_tissue *
-   clip((1000 + HU) / (1000 + HU_tissue), 1/(1 + k), 1 + k), k = 0.25 (density ~ 1000 + HU),
-   HU the densest CT within 1.5 mm below (so a cortex reflects as cortex despite the
-   partial-volume ramp of the resampled CT);
-2. at label boundaries (indicator G), amplitude reflection R = (Z(y) - Z(y-1)) / (Z(y) + Z(y-1)),
-   times cos(theta)^n, theta the angle between the beam and the boundary normal taken from the
-   gradient of the tissue impedance map;
+1. impedance Z from the label's tissue, refined by the CT: Z = Z_tissue * m(HU) / m(HU_tissue),
+   m a monotone CT -> impedance curve through the literature values (tissues.HU_IMPEDANCE), so
+   the partial-volume ramp of an interface carries the impedance across smoothly;
+2. near label boundaries (indicator G, widened by 1 mm to cover the CT's partial-volume ramp,
+   so curved interfaces give continuous lines instead of the label map's voxel staircase),
+   amplitude reflection R = (Z(y) - Z(y-1)) / (Z(y) + Z(y-1)) between neighbouring pixels,
+   summed over 1 mm of depth (the ramp of one CT voxel) to recover a sharp interface's |R|,
+   times cos(theta)^n, theta the angle between the beam and the boundary normal, taken from the
+   CT gradient (smooth where the label map is a voxel staircase);
 3. round-trip amplitude E(y) = exp(-sum_{y' < y} [2 alpha f dz / 8.686 - ln(1 - R^2)]): attenuation
    in dB/cm/MHz at the centre frequency and transmission loss through every interface above;
    air behind skin transmits ~1e-3 each way, so no signal passes an air gap;
@@ -68,7 +70,13 @@ from sonogym.ultrasound._workspace import Workspace
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.slicer import Slices
 from sonogym.ultrasound.speckle import gaussian_quantiles, lattice_bits, seed_mix
-from sonogym.ultrasound.tissues import GEL, TissueTable, physical_table, sonogym_table
+from sonogym.ultrasound.tissues import (
+    GEL,
+    TissueTable,
+    impedance_of_hu,
+    physical_table,
+    sonogym_table,
+)
 
 #: Bits of the per-pixel scatterer lookup: 8 for the density threshold, 4 for the amplitude.
 _DENSITY_BITS = 8
@@ -77,6 +85,9 @@ _LUT_BITS = _DENSITY_BITS + _AMPLITUDE_BITS
 _LUT_MASK = 2**_LUT_BITS - 1
 _GAUSS_BITS = 10
 _GAUSS_MASK = 2**_GAUSS_BITS - 1
+#: CT -> impedance lookup: HU -1024 .. 3071 in 1 HU steps.
+_HU_OFFSET = 1024
+_HU_LUT = 4096
 #: Salt separating the large-scale field's hash from the speckle's.
 _LARGE_SCALE_SALT = 0x5A17
 #: Attenuation exponent per pixel that stands for "blocked" (exp(-60) ~ 1e-26).
@@ -134,8 +145,9 @@ class PhysicalModel:
     gain: float = 0.0  # dB added before log compression
     backscatter_level: float = -30.0  # dB, RMS envelope of dense unit scatterers vs R = 1
     incidence_exponent: float = 1.0  # reflection ~ cos(theta)^n (paper: n = 1)
-    ct_refinement: float = 0.25  # impedance may change by a factor 1/(1+k) .. 1+k from the CT
-    ct_window: float = 1.5e-3  # m; the CT refining an interface is the max this far below it
+    incidence_eps: float = 20.0  # HU per pixel: CT gradients below this read as normal incidence
+    boundary_halfwidth: float = 1.0e-3  # m; reflections within this of a label boundary (ramp)
+    interface_width: float = 1.0e-3  # m; partial reflections summed over this depth (a voxel)
     large_scale_amplitude: float = 0.08
     large_scale_cell: float = 15e-3  # m
     speckle_cell: float = 0.5e-3  # m
@@ -272,11 +284,13 @@ class ModelBasedSimulator:
             k["att"] = (2 * tab.column("alpha") * f_mhz * dz * 1e2 * np_per_db).float().to(dev)
             tgc = 2 * m.tgc_alpha * f_mhz * (y * dz * 1e2) * np_per_db
             k["tgc"] = tgc.float().to(dev)[:, None]
-            k["z"] = tab.column("impedance").float().to(dev)
-            # air (1000 + HU = 0) just clamps: its impedance is ~0 either way
-            k["inv_ref"] = (1.0 / (1000.0 + tab.column("hu")).clamp(min=1.0)).float().to(dev)
+            hu = torch.arange(_HU_LUT, dtype=torch.float64) - _HU_OFFSET
+            k["z_of_hu"] = impedance_of_hu(hu).float().to(dev)
+            scale = tab.column("impedance") / impedance_of_hu(tab.column("hu"))
+            k["z_scale"] = scale.float().to(dev)
             k["z_gel"] = float(tab.params(GEL).impedance)
-            k["ct_rows"] = max(1, int(round(m.ct_window / dz)))
+            k["ramp_rows"] = int(round(m.boundary_halfwidth / dz))
+            k["ramp_box"] = 1 + 2 * int(round(m.interface_width / (2 * dz)))
             sa, sl = m.axial_sigma, m.lateral_sigma
             axial = _psf.gaussian_taps(sa, dz, m.psf_truncation * sa)  # peak 1
             lateral = _psf.scaled(_psf.gaussian_taps(sl, dx, m.psf_truncation * sl), 1.0)
@@ -447,57 +461,66 @@ class ModelBasedSimulator:
         g = k["gel_rows"]
         z_gel = k["z_gel"]
         flat_lab = lab.view(-1)
-        # Tissue impedance Z_l, and below each interface the impedance refined by the CT
-        # (density ~ 1000 + HU), read as the densest CT within ``ct_window`` below the pixel so
-        # that the partial-volume ramp of a resampled CT does not dim the interface.
-        zl = self._buf("zl", ct)
-        torch.index_select(k["z"], 0, flat_lab, out=zl.view(-1))
+        # Impedance: the tissue's literature value, refined by the CT along the CT -> impedance
+        # curve m: Z = Z_tissue * m(HU) / m(HU_tissue). Across an interface's partial-volume
+        # ramp the impedance then follows the (smooth, trilinear) CT, not the label staircase.
+        hu_idx = self._buf("bits_tmp", ct, torch.int64)
         z = self._buf("z", ct)
-        z.copy_(ct)
-        h = ct.shape[1]
-        for d in range(1, min(k["ct_rows"], h)):
-            torch.maximum(z[:, : h - d], ct[:, d:], out=z[:, : h - d])
         tmp = self._buf("t", ct)
-        torch.index_select(k["inv_ref"], 0, flat_lab, out=tmp.view(-1))
-        z.add_(1000.0).mul_(tmp)
-        kk = m.ct_refinement
-        z.clamp_(1.0 / (1.0 + kk), 1.0 + kk)
-        if g:
-            z[:, :g].masked_fill_(self._gel_mask(ct, lab, g), 1.0)
-        z.mul_(zl)
-        # Amplitude reflection R = (Z - Z_l,up) / (Z + Z_l,up) at label boundaries (G); gel
-        # above row 0.
+        torch.add(ct, _HU_OFFSET + 0.5, out=z).clamp_(0, _HU_LUT - 1)
+        hu_idx.copy_(z)  # rounds to the nearest HU
+        if g:  # gel and partial-volume air at the skin read as water
+            hu_idx[:, :g].masked_fill_(self._gel_mask(ct, lab, g), _HU_OFFSET)
+        torch.index_select(k["z_of_hu"], 0, hu_idx.view(-1), out=z.view(-1))
+        torch.index_select(k["z_scale"], 0, flat_lab, out=tmp.view(-1))
+        z.mul_(tmp)
+        # Amplitude reflection R = (Z(y) - Z(y-1)) / (Z(y) + Z(y-1)) near label boundaries (G,
+        # widened to the rows of the CT ramp); gel above row 0.
         refl = self._buf("r", ct)
-        torch.sub(z[:, 1:], zl[:, :-1], out=refl[:, 1:])
+        torch.sub(z[:, 1:], z[:, :-1], out=refl[:, 1:])
         torch.sub(z[:, 0], z_gel, out=refl[:, 0])
-        torch.add(z[:, 1:], zl[:, :-1], out=tmp[:, 1:])
+        torch.add(z[:, 1:], z[:, :-1], out=tmp[:, 1:])
         torch.add(z[:, 0], z_gel, out=tmp[:, 0])
         refl.div_(tmp)
         edge = self._buf("edge", ct, torch.bool)
         torch.ne(lab[:, 1:], lab[:, :-1], out=edge[:, 1:])
         torch.ne(lab[:, 0], GEL, out=edge[:, 0])
-        refl.mul_(edge)
-        # Incidence: gradient of the tissue-impedance map at the interface between y-1 and y:
-        # axial difference, lateral central difference of the two rows' mean.
+        h = ct.shape[1]
+        near = self._buf("near", ct, torch.bool)
+        near.copy_(edge)
+        for d in range(1, min(k["ramp_rows"], h - 1) + 1):
+            near[:, : h - d].logical_or_(edge[:, d:])
+            near[:, d:].logical_or_(edge[:, : h - d])
+        refl.mul_(near)
+        # The partial-volume ramp spreads an interface's jump over about a CT voxel; summing
+        # the partial reflections over ``interface_width`` gives back a sharp interface's |R|.
+        rb = k["ramp_box"]
+        if rb > 1:
+            refl = _psf.blur_1d(refl, [1.0] * rb, -2, out=self._buf("rbox", ct))
+        # Incidence: the interface normal from the CT gradient between rows y-1 and y (the CT
+        # is smooth where the label map is a staircase): axial difference, lateral central
+        # difference of the two rows' mean; cos = (|g_z| + eps) / (|g| + eps), so interfaces
+        # without CT contrast count as normal to the beam.
         gz, gx = z, self._buf("gx", ct)  # z is free now
-        torch.sub(zl[:, 1:], zl[:, :-1], out=gz[:, 1:])
-        torch.sub(zl[:, 0], z_gel, out=gz[:, 0])
-        torch.add(zl[:, 1:], zl[:, :-1], out=tmp[:, 1:])
-        torch.add(zl[:, 0], z_gel, out=tmp[:, 0])
+        torch.sub(ct[:, 1:], ct[:, :-1], out=gz[:, 1:])
+        gz[:, 0] = 0.0
+        torch.add(ct[:, 1:], ct[:, :-1], out=tmp[:, 1:])
+        tmp[:, 0] = 2 * ct[:, 0]
         if gx.shape[2] > 2:
             torch.sub(tmp[:, :, 2:], tmp[:, :, :-2], out=gx[:, :, 1:-1])
         gx[:, :, 0] = 0.0
         gx[:, :, -1] = 0.0
-        cos = torch.abs(gz, out=zl)  # zl is free now
-        cos.div_(gz.square_().add_(gx.square_().mul_(0.0625)).add_(1e-12).sqrt_())
+        eps = m.incidence_eps
+        cos = torch.abs(gz, out=self._buf("cos", ct)).add_(eps)
+        cos.div_(gz.square_().add_(gx.square_().mul_(0.0625)).sqrt_().add_(eps))
         if m.incidence_exponent != 1.0:
             cos.pow_(m.incidence_exponent)
         # Round-trip amplitude E: attenuation and transmission (1 - R^2) through interfaces
         # above (exclusive of the pixel's own), TGC.
         loss = gx  # free now
         torch.index_select(k["att"], 0, flat_lab, out=loss.view(-1))
-        torch.mul(refl, refl, out=tmp).clamp_(max=1.0 - 1e-12).neg_().log1p_()
-        loss.sub_(tmp)
+        torch.mul(refl, refl, out=tmp).clamp_(max=1.0 - 1e-6).neg_().log1p_()
+        loss.sub_(tmp, alpha=1.0 / rb)
         e_amp = gz  # free now
         torch.cumsum(loss, 1, out=e_amp)
         e_amp.sub_(loss).neg_().add_(k["tgc"]).clamp_(min=-_MAX_EXPONENT).exp_()

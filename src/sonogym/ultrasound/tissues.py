@@ -19,7 +19,8 @@ TotalSegmentator's spinal_cord mask covers in the lumbar canal).
 (dB/cm/MHz); scattering mu0 / mu1 / sigma0 with the paper's meaning (scatterer amplitude
 mu0 + sigma0 * N0 where N1 <= mu1), chosen so that parenchyma gives fully developed speckle
 (mu1 = 2: 98 % of pixels scatter) and fluids are near-anechoic; ``hu`` is the tissue's nominal
-CT value, the reference for refining its impedance by the CT (Z ~ density ~ 1000 + HU).
+CT value. The impedance is refined by the CT through ``HU_IMPEDANCE``, a monotone CT -> impedance
+curve through the same literature values: a pixel's impedance is Z_tissue * m(HU) / m(hu).
 Sources: [B] Burger et al. 2013 table, [S] Sensors 2023, [D] Diagnostics 2023, [I] ImFusion,
 [R] recalled / chosen here (see ultrasound_physics.md §1a).
 """
@@ -178,6 +179,33 @@ PHYSICAL_LABEL_TISSUE: dict[int, str] = _ranges(
     (GEL, "gel"),
 )
 PHYSICAL_DEFAULT_TISSUE = "soft_tissue"
+
+#: CT -> impedance curve m(HU), piecewise linear through (HU, MRayl) anchors from the table
+#: above (air, fat, water, soft tissue, cartilage, cancellous bone [C] 1.5-3.5, cortical bone);
+#: constant beyond the ends. Tissues on the curve (Z_tissue = m(hu)) change impedance only
+#: with the CT, so a partial-volume ramp carries an interface's impedance jump smoothly; those
+#: off it (skin) keep their literature contrast on top.
+HU_IMPEDANCE: tuple[tuple[float, float], ...] = (
+    (-1000.0, 0.0004),
+    (-100.0, 1.38),
+    (0.0, 1.49),
+    (40.0, 1.63),
+    (90.0, 1.70),
+    (250.0, 2.5),
+    (1200.0, 6.5),
+    (2000.0, 7.8),
+)
+
+
+def impedance_of_hu(hu: torch.Tensor) -> torch.Tensor:
+    """m(HU): impedance (MRayl) of CT values along ``HU_IMPEDANCE`` (float64)."""
+    hu = torch.as_tensor(hu, dtype=torch.float64)
+    xs = torch.tensor([a for a, _ in HU_IMPEDANCE], dtype=torch.float64)
+    ys = torch.tensor([b for _, b in HU_IMPEDANCE], dtype=torch.float64)
+    h = hu.clamp(xs[0], xs[-1])
+    i = torch.searchsorted(xs, h, right=True).clamp(1, len(xs) - 1)
+    x0, x1, y0, y1 = xs[i - 1], xs[i], ys[i - 1], ys[i]
+    return y0 + (y1 - y0) * (h - x0) / (x1 - x0)
 
 
 class TissueTable:

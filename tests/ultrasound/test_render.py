@@ -47,13 +47,22 @@ def test_render_command_writes_pngs_and_sheet(small_phantom, tmp_path):
     assert sheet == [tmp_path / "sheet.png"] and sheet[0].stat().st_size > 20_000
 
 
-def test_image_command(tmp_path, monkeypatch):
-    monkeypatch.setenv("SONOGYM_CACHE", str(tmp_path / "cache"))
+def test_image_command(tmp_path, monkeypatch, small_phantom):
+    import sonogym.anatomy
+
+    seeds = []
+
+    def fake_load_phantom(seed, params=None):  # the session's 2 mm phantom, not a fresh build
+        seeds.append((seed, params.spacing))
+        return small_phantom
+
+    monkeypatch.setattr(sonogym.anatomy, "load_phantom", fake_load_phantom)
     out = tmp_path / "img"
     args = ["image", "--seed", "0", "--spacing", "2", "--pose", "0,0,3.1416", "--out", str(out)]
     res = CliRunner().invoke(app, [*args, "--preset", "sonogym", "--sheet"])
     assert res.exit_code == 0, res.output
     assert (out / "sheet.png").exists() and "wrote" in res.output
+    assert seeds == [(0, 0.002)]
     res = CliRunner().invoke(app, ["image", "--pose", "1,2", "--out", str(out)])
     assert res.exit_code != 0 and "x,z,yaw" in res.output
     res = CliRunner().invoke(app, ["image", "--preset", "fancy", "--seed", "0", "--spacing", "2"])

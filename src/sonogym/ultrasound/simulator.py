@@ -24,8 +24,9 @@ at 0.5 mm pixels they equal the reference's per-pixel constants:
 Kernels are rescaled to the reference kernels' sums (lateral sum for PSF_R, both sums for PSF_B),
 so a coarser probe sees an interface or a speckle region as bright as the 0.5 mm probe does
 (the reference instead scaled sigma by 1/sqrt(s) and kept the per-pixel attenuation: a quirk).
-Deviation: air below the gel band blocks the beam (the reference zeroed a whole image when the
-probe lost contact).
+Deviations: air below the gel band blocks the beam (the reference zeroed a whole image when the
+probe lost contact); CT jumps inside the gel band do not reflect (the reference imaged from 3 mm
+below the skin, so its images had no skin line); large-scale cells are fixed in patient space.
 
 ``physical`` -- the paper's full model with physical units:
 
@@ -197,7 +198,7 @@ class ModelBasedSimulator:
     Args:
         preset: "physical", "sonogym", or a configured ``PhysicalModel``/``SonoGymModel``.
         device: where the lookup tables live; slices on another device are rejected.
-        chunk_pixels: pixels processed per chunk (CPU cache blocking); default 2**18 on CPU,
+        chunk_pixels: pixels processed per chunk (CPU cache blocking); default 2**19 on CPU,
             everything at once on CUDA.
     """
 
@@ -211,7 +212,7 @@ class ModelBasedSimulator:
         self.preset = self.model.name
         self.device = torch.device(device)
         if chunk_pixels is None:
-            chunk_pixels = 2**18 if self.device.type == "cpu" else 2**40
+            chunk_pixels = 2**19 if self.device.type == "cpu" else 2**40
         self.chunk_pixels = int(chunk_pixels)
         self._consts: dict[ProbeGeometry, dict] = {}
         self._gauss = gaussian_quantiles(_GAUSS_BITS, device=self.device)
@@ -390,8 +391,8 @@ class ModelBasedSimulator:
             o = origin + (kb - 1) / 2 * (row + col)
             v = lattice_bits(o, kb * row, kb * col, hb, wb, m.large_scale_cell, mix_ls)
             v = torch.take(self._gauss, v.bitwise_and_(_GAUSS_MASK))
-            mod = v.mul_(m.large_scale_amplitude).add_(1.0)
-            amp.view(b, hb, kb, wb, kb).mul_(mod.view(b, hb, 1, wb, 1))
+            mod = v.mul_(m.large_scale_amplitude).add_(1.0).repeat_interleave(kb, dim=2)
+            amp.view(b, hb, kb, w).mul_(mod.view(b, hb, 1, w))
         return amp, bits
 
     # ------------------------------------------------------------- sonogym

@@ -13,9 +13,16 @@ finer than the voxels (0.5 mm pixels, 1 mm voxels), the slicer samples the volum
 k x k pixel blocks, k = floor(voxel / pixel), at the block centres, and upsamples to the pixel
 grid: bilinearly for CT, by block replication for labels (so each pixel takes the label of the
 sample nearest to it, at most (k - 1) / 2 pixels away). Trilinear interpolation of a voxel grid
-has no detail finer than a voxel, so this is indistinguishable in the simulated images (tested:
-tests/ultrasound/test_slicer.py compares both modes through the simulator) and 4x cheaper at
-k = 2. ``upsample=False`` samples every pixel directly.
+has no detail finer than a voxel, so this is 4x cheaper at k = 2 and indistinguishable in the
+``physical`` preset's images (image correlation > 0.97 with direct sampling,
+tests/ultrasound/test_slicer.py). The ``sonogym`` preset squares per-pixel CT jumps, so its bone
+lines change brightness with how an edge's ramp is sampled (as the reference's did with its
+nearest-voxel lookup): same structures, correlation > 0.9, line brightness within ~30 %.
+``upsample=False`` samples every pixel directly.
+
+Gathers run depth-first along the volume's contiguous axis (y, the beam's usual direction) in
+chunks of envs that fit in cache, with int32 indices and ``index_select`` (3-5x faster than
+``take``/advanced indexing on CPU), and all temporaries live in reused buffers.
 """
 
 from __future__ import annotations
@@ -182,10 +189,12 @@ class Slicer:
         device: where the volumes and the outputs live (default: the first patient's CT's).
         upsample: sample at the volume's resolution and upsample to finer pixels (see the module
             docstring); False samples every pixel.
+        chunk_samples: volume samples per chunk of envs (bounds the scratch memory and keeps it
+            in cache); default 2**17 on CPU, everything at once on CUDA.
 
     Memory: a padded copy of every patient, CT as float16 (HU to 0.5 HU below 1024 HU, 1 HU
     to 2048, 2 HU above) and labels as uint8: 3 bytes per voxel, plus reusable scratch
-    buffers (about 40 bytes per coarse sample of the largest batch).
+    buffers (about 70 bytes per sample of one chunk: 9 MB on CPU).
     """
 
     def __init__(
@@ -194,6 +203,7 @@ class Slicer:
         probe: ProbeGeometry | None = None,
         device: torch.device | str | None = None,
         upsample: bool = True,
+        chunk_samples: int | None = None,
     ) -> None:
         if isinstance(patients, Patient):
             patients = [patients]
@@ -206,6 +216,9 @@ class Slicer:
         self.device = torch.device(device) if device is not None else patients[0].ct.device
         self.upsample = bool(upsample)
         self.names = [p.name for p in patients]
+        if chunk_samples is None:
+            chunk_samples = 2**17 if self.device.type == "cpu" else 2**40
+        self.chunk_samples = int(chunk_samples)
 
         cts, labs, offs, dims, orgs, sps, seeds = [], [], [], [], [], [], []
         off = 0
@@ -319,8 +332,12 @@ class Slicer:
             ct = torch.empty(shape, dtype=torch.float32, device=self.device)
             lab = torch.empty(shape, dtype=torch.uint8, device=self.device)
         origin, row_step, col_step = self._geometry(pos, rot)
-        if n:
-            self._sample(origin, row_step, col_step, pidx, ct, lab)
+        kz, kx = self.block
+        per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
+        step = max(1, self.chunk_samples // per_env)
+        for s in range(0, n, step):  # chunks of envs: bounded scratch, cache-sized on CPU
+            c = slice(s, min(n, s + step))
+            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c])
         return Slices(ct, lab, origin, row_step, col_step, self._seeds[pidx], pidx, pr)
 
     def _sample(

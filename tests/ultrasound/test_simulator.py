@@ -66,7 +66,7 @@ def test_shifted_pose_gives_a_correlated_image(slicer, preset):
         x = x[10:36, 12:138]
         return x - x.mean(1, keepdim=True)
 
-    assert abs(_corr(speckle(a), speckle(d))) < 0.1
+    assert abs(_corr(speckle(a), speckle(d))) < 0.25  # independent (~300 speckle cells)
     assert _corr(speckle(a[:, 1:]), speckle(b[:, :-1])) > 0.95
 
 

@@ -55,21 +55,26 @@ def blur_1d(
 
 
 def blur_2d(
-    x: torch.Tensor, axial: list[float], lateral: list[float], tmp: torch.Tensor | None = None
+    x: torch.Tensor,
+    axial: list[float],
+    lateral: list[float],
+    tmp: torch.Tensor | None = None,
+    dims: tuple[int, int] = (-2, -1),
 ) -> torch.Tensor:
-    """Separable blur of (..., H, W): ``axial`` taps along H, ``lateral`` taps along W.
+    """Separable blur: ``axial`` taps along dims[0] (H), ``lateral`` taps along dims[1] (W).
 
     With ``tmp`` (same shape as x) the result is written back into x, using tmp as scratch;
     without, a new tensor is returned and x is left alone."""
+    da, dl = dims
     if tmp is None:
-        y = blur_1d(x, lateral, -1) if lateral != [1.0] else x
-        return blur_1d(y, axial, -2) if axial != [1.0] else (y if y is not x else x.clone())
+        y = blur_1d(x, lateral, dl) if lateral != [1.0] else x
+        return blur_1d(y, axial, da) if axial != [1.0] else (y if y is not x else x.clone())
     if lateral != [1.0]:
-        blur_1d(x, lateral, -1, out=tmp)
+        blur_1d(x, lateral, dl, out=tmp)
     else:
         tmp.copy_(x)
     if axial != [1.0]:
-        blur_1d(tmp, axial, -2, out=x)
+        blur_1d(tmp, axial, da, out=x)
     else:
         x.copy_(tmp)
     return x

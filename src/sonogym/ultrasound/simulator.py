@@ -86,6 +86,9 @@ _LUT_BITS = _DENSITY_BITS + _AMPLITUDE_BITS
 _LUT_MASK = 2**_LUT_BITS - 1
 _GAUSS_BITS = 10
 _GAUSS_MASK = 2**_GAUSS_BITS - 1
+#: Bits 12-27: a pair of independent N(0, 1) values (8 bits each) for the complex scatterers.
+_PAIR_BITS = 16
+_PAIR_MASK = 2**_PAIR_BITS - 1
 #: CT -> impedance lookup: HU -1024 .. 3071 in 1 HU steps.
 _HU_OFFSET = 1024
 _HU_LUT = 4096
@@ -216,6 +219,10 @@ class ModelBasedSimulator:
         self.chunk_pixels = int(chunk_pixels)
         self._consts: dict[ProbeGeometry, dict] = {}
         self._gauss = gaussian_quantiles(_GAUSS_BITS, device=self.device)
+        # (g_re, g_im) pairs on a 256 x 256 grid of quantiles, as int64 words for one gather
+        q = gaussian_quantiles(_PAIR_BITS // 2)
+        pairs = torch.stack(torch.meshgrid(q, q, indexing="ij"), -1).reshape(-1, 2)
+        self._gauss_pairs = pairs.contiguous().view(torch.int64).view(-1).to(self.device)
         self._ws = Workspace(self.device)
 
     @property
@@ -357,8 +364,8 @@ class ModelBasedSimulator:
         return self._ws.get(name, tuple(like.shape), dtype)
 
     def _labels(self, lab8: torch.Tensor, k: dict) -> torch.Tensor:
-        """int64 labels (workspace) with air in the gel band replaced by GEL."""
-        lab = self._buf("lab", lab8, torch.int64)
+        """int32 labels (workspace) with air in the gel band replaced by GEL."""
+        lab = self._buf("lab", lab8, torch.int32)
         lab.copy_(lab8)
         g = k["gel_rows"]
         if g:
@@ -373,26 +380,28 @@ class ModelBasedSimulator:
     def _scatterers(
         self, lab: torch.Tensor, geom: tuple, k: dict
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Scatterer amplitude T (1 + A_l V) per pixel (workspace "amp"), and the pixels' random
-        bits (workspace "bits"). Shifts ``lab`` in place (it is not used afterwards)."""
+        """Scatterer amplitude T (1 + A_l V) per pixel (workspace "amp"), and the pixels' 32
+        random bits (workspace "bits"; bits 0-11 are used here). Shifts ``lab`` in place (it is
+        not used afterwards)."""
         m = self.model
         origin, row, col, mix, mix_ls = geom
         b, h, w = lab.shape
-        bits = self._buf("bits", lab, torch.int64)
-        tmp = self._buf("bits_tmp", lab, torch.int64)
-        lattice_bits(origin, row, col, h, w, m.speckle_cell, mix, out=bits, tmp=tmp)
-        idx = torch.bitwise_and(bits, _LUT_MASK, out=tmp)
+        bits = self._buf("bits", lab, torch.int32)
+        key = self._buf("key", lab, torch.int64)
+        lattice_bits(origin, row, col, h, w, m.speckle_cell, mix, out=bits, tmp=key)
+        idx = key.view(torch.int32).view(-1)[: lab.numel()].view(lab.shape)  # free scratch
+        torch.bitwise_and(bits, _LUT_MASK, out=idx)
         idx.bitwise_or_(lab.bitwise_left_shift_(_LUT_BITS))
-        amp = self._buf("amp", lab)
+        amp = self._buf("amp", lab, torch.float32)
         torch.index_select(k["lut"], 0, idx.view(-1), out=amp.view(-1))
         if m.large_scale_amplitude:
             kb = k["ls_block"]
             hb, wb = h // kb, w // kb
             o = origin + (kb - 1) / 2 * (row + col)
             v = lattice_bits(o, kb * row, kb * col, hb, wb, m.large_scale_cell, mix_ls)
-            v = torch.take(self._gauss, v.bitwise_and_(_GAUSS_MASK))
-            mod = v.mul_(m.large_scale_amplitude).add_(1.0).repeat_interleave(kb, dim=2)
-            amp.view(b, hb, kb, w).mul_(mod.view(b, hb, 1, w))
+            v = torch.index_select(self._gauss, 0, v.bitwise_and_(_GAUSS_MASK).view(-1))
+            mod = v.view(b, hb, wb).mul_(m.large_scale_amplitude).add_(1.0)
+            amp.view(b, hb, kb, w).mul_(mod.repeat_interleave(kb, dim=2).view(b, hb, 1, w))
         return amp, bits
 
     # ------------------------------------------------------------- sonogym
@@ -465,7 +474,7 @@ class ModelBasedSimulator:
         # Impedance: the tissue's literature value, refined by the CT along the CT -> impedance
         # curve m: Z = Z_tissue * m(HU) / m(HU_tissue). Across an interface's partial-volume
         # ramp the impedance then follows the (smooth, trilinear) CT, not the label staircase.
-        hu_idx = self._buf("bits_tmp", ct, torch.int64)
+        hu_idx = self._buf("hu_idx", ct, torch.int32)
         z = self._buf("z", ct)
         tmp = self._buf("t", ct)
         torch.add(ct, _HU_OFFSET + 0.5, out=z).clamp_(0, _HU_LUT - 1)
@@ -526,25 +535,24 @@ class ModelBasedSimulator:
         torch.cumsum(loss, 1, out=e_amp)
         e_amp.sub_(loss).neg_().add_(k["tgc"]).clamp_(min=-_MAX_EXPONENT).exp_()
         refl.mul_(cos).mul_(e_amp)
-        # Complex scatterers T (1 + A_l V) (g_re + i g_im), attenuated.
+        # Complex scatterers T (1 + A_l V) (g_re + i g_im), attenuated, plus the reflections
+        # (real), blurred by the PSF as one interleaved (re, im) field.
         amp, bits = self._scatterers(lab, geom, k)
         amp.mul_(e_amp)
-        sel = self._buf("bits_tmp", ct, torch.int64)
-        im = self._buf("im", ct)
-        torch.bitwise_right_shift(bits, 22, out=sel).bitwise_and_(_GAUSS_MASK)
-        torch.index_select(self._gauss, 0, sel.view(-1), out=im.view(-1))
-        im.mul_(amp)
-        re = cos  # free now
-        torch.bitwise_right_shift(bits, 12, out=sel).bitwise_and_(_GAUSS_MASK)
-        torch.index_select(self._gauss, 0, sel.view(-1), out=re.view(-1))
-        re.mul_(amp).add_(refl)
-        _psf.blur_2d(re, *k["psf"], tmp=tmp)
-        _psf.blur_2d(im, *k["psf"], tmp=tmp)
-        power = re.square_().add_(im.square_())
+        b, h, w = ct.shape
+        field = self._ws.get("field", (b, h, w, 2), torch.float32)
+        sel = self._buf("hu_idx", ct, torch.int32)  # free now
+        torch.bitwise_right_shift(bits, _LUT_BITS, out=sel).bitwise_and_(_PAIR_MASK)
+        torch.index_select(self._gauss_pairs, 0, sel.view(-1), out=field.view(torch.int64).view(-1))
+        field.mul_(amp.unsqueeze(-1))
+        field[..., 0].add_(refl)
+        scratch = self._ws.get("field_tmp", (b, h, w, 2), torch.float32)
+        _psf.blur_2d(field, *k["psf"], tmp=scratch, dims=(-3, -2))
+        re, im = field[..., 0], field[..., 1]
+        power = torch.mul(re, re, out=out).addcmul_(im, im)  # |field|^2 (complex abs is slow)
         if not display:
-            torch.sqrt(power, out=out)
+            power.sqrt_()
             return
         # 10 log10(power) + gain in dB, mapped from [-DR, 0] to [0, 1].
         scale = 10.0 / math.log(10) / m.dynamic_range
-        power.add_(1e-30).log_().mul_(scale).add_(1.0 + m.gain / m.dynamic_range)
-        torch.clamp(power, 0.0, 1.0, out=out)
+        power.add_(1e-30).log_().mul_(scale).add_(1.0 + m.gain / m.dynamic_range).clamp_(0.0, 1.0)

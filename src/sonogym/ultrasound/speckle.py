@@ -15,10 +15,10 @@ Hashing runs on every pixel, so it is built from a few full-array integer operat
   packed into one int64 (``FIELD_BITS`` per axis, no carries between fields), so one broadcast
   integer addition gives the packed lattice coordinates of every pixel and one mask drops the
   fractions;
-* the packed key, xor the seed, goes through MurmurHash3's 64-bit finaliser (xor-shifts and
-  wrapping int64 multiplies, the same on CPU and CUDA; torch's shifts are arithmetic, which
-  changes the mixer a little but not its quality: neighbouring pixels' bits are uncorrelated,
-  tests/ultrasound/test_speckle.py); its low 32 bits are the pixel's random bits.
+* the packed key, xor the seed, is folded to 32 bits and goes through MurmurHash3's 32-bit
+  finaliser (logical xor-shifts and wrapping int32 multiplies, the same on CPU and CUDA:
+  neighbouring pixels' bits are uncorrelated, tests/ultrasound/test_speckle.py); the result is
+  the pixel's 32 random bits.
 
 Range: lattice coordinates span 2^(FIELD_BITS - FRAC_BITS) cells (4 m at 0.5 mm) centred on the
 patient frame's origin.
@@ -49,9 +49,9 @@ def _signed(x: int) -> int:
     return x - 2**64 if x >= 2**63 else x
 
 
-# MurmurHash3's 64-bit finaliser constants.
-_M1 = _signed(0xFF51AFD7ED558CCD)
-_M2 = _signed(0xC4CEB9FE1A85EC53)
+# MurmurHash3's 32-bit finaliser constants, as signed int32.
+_M32_1 = 0x85EBCA6B - 2**32
+_M32_2 = 0xC2B2AE35 - 2**32
 
 
 def splitmix64(x: int) -> int:
@@ -122,18 +122,24 @@ def hash_bits(
     out: torch.Tensor | None = None,
     tmp: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """(B, H, W) int64 random values from packed coordinates and (B,) mixed seeds.
+    """(B, H, W) int32 random values from packed coordinates and (B,) mixed seeds.
 
-    The low 32 bits are well mixed; use them (``(h >> k) & mask`` with k + bits <= 32).
-    ``out`` and ``tmp`` are optional (B, H, W) int64 buffers."""
+    ``out`` (int32) and ``tmp`` (int64) are optional (B, H, W) buffers. The packed key (int64)
+    is xor-ed with the seed and folded to 32 bits (low word xor high word: distinct lattice
+    points collide only 0.5 m or more apart), then mixed with MurmurHash3's 32-bit finaliser."""
     shape = (rows.shape[0], rows.shape[1], cols.shape[1])
-    h = torch.add(rows[:, :, None], cols[:, None, :], out=out)
-    if tmp is None:
-        tmp = torch.empty(shape, dtype=torch.int64, device=h.device)
-    h.bitwise_and_(_INT_MASK)
-    h.bitwise_xor_(mix.view(-1, 1, 1))
-    for mult in (_M1, _M2, None):
-        h.bitwise_xor_(torch.bitwise_right_shift(h, 33, out=tmp))
+    key = torch.add(rows[:, :, None], cols[:, None, :], out=tmp)
+    key.bitwise_and_(_INT_MASK)
+    key.bitwise_xor_(mix.view(-1, 1, 1))
+    if out is None:
+        out = torch.empty(shape, dtype=torch.int32, device=key.device)
+    words = key.view(torch.int32).view(*shape, 2)  # little-endian: (low, high)
+    h = torch.bitwise_xor(words[..., 0], words[..., 1], out=out)
+    t = key.view(torch.int32).view(-1)[: h.numel()].view(shape)  # key's storage is free now
+    for shift, mult in ((16, _M32_1), (13, _M32_2), (16, None)):
+        # logical shift (torch's >> is arithmetic on signed ints): mask the sign copies away
+        torch.bitwise_right_shift(h, shift, out=t).bitwise_and_(2 ** (32 - shift) - 1)
+        h.bitwise_xor_(t)
         if mult is not None:
             h.mul_(mult)
     return h
@@ -150,7 +156,7 @@ def lattice_bits(
     out: torch.Tensor | None = None,
     tmp: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """(B, H, W) int64 random values, a function of each pixel's nearest lattice point and the
+    """(B, H, W) int32 random values, a function of each pixel's nearest lattice point and the
     image's seed only."""
     rows, cols = packed_coordinates(origin, row_step, col_step, height, width, cell)
     return hash_bits(rows, cols, mix, out, tmp)

@@ -99,6 +99,9 @@ _BLOCK = 60.0
 #: Largest attenuation exponent kept: exp(-40) ~ 4e-18 is black, and clamping keeps products
 #: clear of float32 denormals (which are ~50x slower on CPU).
 _MAX_EXPONENT = 40.0
+#: Same for the physical preset's amplitudes, which get squared: e^-20 is -174 dB, far below
+#: the display's floor, and its square stays a normal float32.
+_MAX_LOG_AMPLITUDE = 20.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,9 +292,11 @@ class ModelBasedSimulator:
         else:
             f_mhz = m.frequency * 1e-6
             np_per_db = math.log(10) / 20
-            k["att"] = (2 * tab.column("alpha") * f_mhz * dz * 1e2 * np_per_db).float().to(dev)
-            tgc = 2 * m.tgc_alpha * f_mhz * (y * dz * 1e2) * np_per_db
-            k["tgc"] = tgc.float().to(dev)[:, None]
+            # per-row log-amplitude change: TGC gain minus round-trip attenuation (nepers)
+            att = 2 * tab.column("alpha") * f_mhz * dz * 1e2 * np_per_db
+            tgc = 2 * m.tgc_alpha * f_mhz * dz * 1e2 * np_per_db
+            k["gain_rate"] = (tgc - att).float().to(dev)
+            k["inc_block"] = _large_scale_block(h, w, dz, dx, limit=1.0e-3)
             hu = torch.arange(_HU_LUT, dtype=torch.float64) - _HU_OFFSET
             k["z_of_hu"] = impedance_of_hu(hu).float().to(dev)
             scale = tab.column("impedance") / impedance_of_hu(tab.column("hu"))
@@ -507,34 +512,43 @@ class ModelBasedSimulator:
         rb = k["ramp_box"]
         if rb > 1:
             refl = _psf.blur_1d(refl, [1.0] * rb, -2, out=self._buf("rbox", ct))
-        # Incidence: the interface normal from the CT gradient between rows y-1 and y (the CT
-        # is smooth where the label map is a staircase): axial difference, lateral central
-        # difference of the two rows' mean; cos = (|g_z| + eps) / (|g| + eps), so interfaces
-        # without CT contrast count as normal to the beam.
-        gz, gx = z, self._buf("gx", ct)  # z is free now
-        torch.sub(ct[:, 1:], ct[:, :-1], out=gz[:, 1:])
-        gz[:, 0] = 0.0
-        torch.add(ct[:, 1:], ct[:, :-1], out=tmp[:, 1:])
-        tmp[:, 0] = 2 * ct[:, 0]
-        if gx.shape[2] > 2:
-            torch.sub(tmp[:, :, 2:], tmp[:, :, :-2], out=gx[:, :, 1:-1])
-        gx[:, :, 0] = 0.0
-        gx[:, :, -1] = 0.0
-        eps = m.incidence_eps
-        cos = torch.abs(gz, out=self._buf("cos", ct)).add_(eps)
-        cos.div_(gz.square_().add_(gx.square_().mul_(0.0625)).sqrt_().add_(eps))
+        # Incidence: the interface normal from the CT gradient (the CT is smooth where the label
+        # map is a voxel staircase), on a grid of ~1 mm blocks (the resampled CT has no finer
+        # detail): forward axial difference, lateral central difference of the two rows' sum;
+        # cos = (|g_z| + eps) / (|g| + eps), so interfaces without CT contrast count as normal.
+        kb = k["inc_block"]
+        c = ct[:, ::kb, ::kb]
+        b, h, w = ct.shape
+        hb, wb = c.shape[1], c.shape[2]
+        gz = self._ws.get("gz", (b, hb, wb), torch.float32)
+        gs = self._ws.get("gs", (b, hb, wb), torch.float32)
+        gx = self._ws.get("gxb", (b, hb, wb), torch.float32)
+        torch.sub(c[:, 1:], c[:, :-1], out=gz[:, :-1])
+        gz[:, -1] = 0.0
+        torch.add(c[:, 1:], c[:, :-1], out=gs[:, :-1])
+        gs[:, -1] = 2 * c[:, -1]
+        gx.zero_()
+        if wb > 2:
+            torch.sub(gs[:, :, 2:], gs[:, :, :-2], out=gx[:, :, 1:-1])
+        eps = m.incidence_eps * kb
+        cos = torch.abs(gz, out=gs).add_(eps)
+        cos.div_(gz.square_().addcmul_(gx, gx, value=0.0625).sqrt_().add_(eps))
         if m.incidence_exponent != 1.0:
             cos.pow_(m.incidence_exponent)
-        # Round-trip amplitude E: attenuation and transmission (1 - R^2) through interfaces
-        # above (exclusive of the pixel's own), TGC.
-        loss = gx  # free now
-        torch.index_select(k["att"], 0, flat_lab, out=loss.view(-1))
+        if kb > 1:
+            cos = cos.repeat_interleave(kb, dim=2)
+        refl_v = refl.view(b, hb, kb, w)
+        # Round-trip amplitude E, TGC included: exp(sum over rows above of (TGC rate -
+        # 2 alpha f dz) + ln(1 - R^2)); transmission uses R before the incidence factor.
+        q = z  # free now
+        torch.index_select(k["gain_rate"], 0, flat_lab, out=q.view(-1))
         torch.mul(refl, refl, out=tmp).clamp_(max=1.0 - 1e-6).neg_().log1p_()
-        loss.sub_(tmp, alpha=1.0 / rb)
-        e_amp = gz  # free now
-        torch.cumsum(loss, 1, out=e_amp)
-        e_amp.sub_(loss).neg_().add_(k["tgc"]).clamp_(min=-_MAX_EXPONENT).exp_()
-        refl.mul_(cos).mul_(e_amp)
+        q.add_(tmp, alpha=1.0 / rb)
+        e_amp = tmp
+        torch.cumsum(q, 1, out=e_amp)
+        e_amp.sub_(q).clamp_(-_MAX_LOG_AMPLITUDE, _MAX_LOG_AMPLITUDE).exp_()
+        refl_v.mul_(cos.view(b, hb, 1, w))
+        refl.mul_(e_amp)
         # Complex scatterers T (1 + A_l V) (g_re + i g_im), attenuated, plus the reflections
         # (real), blurred by the PSF as one interleaved (re, im) field.
         amp, bits = self._scatterers(lab, geom, k)
@@ -555,4 +569,5 @@ class ModelBasedSimulator:
             return
         # 10 log10(power) + gain in dB, mapped from [-DR, 0] to [0, 1].
         scale = 10.0 / math.log(10) / m.dynamic_range
-        power.add_(1e-30).log_().mul_(scale).add_(1.0 + m.gain / m.dynamic_range).clamp_(0.0, 1.0)
+        power.clamp_(min=1e-30).log_().mul_(scale).add_(1.0 + m.gain / m.dynamic_range)
+        power.clamp_(0.0, 1.0)

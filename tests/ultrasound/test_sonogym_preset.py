@@ -143,12 +143,12 @@ def test_scatterer_statistics():
     sim = ModelBasedSimulator(model)
     k = sim._constants(ProbeGeometry.linear_2d())
     for label, tissue in ((SOFT, 12), (BONE, 13)):
-        lab = torch.full((4, h, w), label, dtype=torch.int64)
+        lab12 = torch.full((4, h, w), label << 12, dtype=torch.int32)  # labels << 12
         o = torch.rand(4, 3, dtype=torch.float64) * 0.01
         rows = torch.tensor([[0.0, 0.5e-3, 0.0]] * 4, dtype=torch.float64)
         cols = torch.tensor([[0.5e-3, 0.0, 0.0]] * 4, dtype=torch.float64)
         mix = torch.tensor([1, 2, 3, 4])
-        amp, _ = sim._scatterers(lab, (o, rows, cols, mix, mix), k)
+        amp, _ = sim._scatterers(lab12, (o, rows, cols, mix, mix), k)
         t = SONOGYM_TISSUES[tissue]
         density = 0.5 * (1 + math.erf(t.mu1 / math.sqrt(2)))
         on = amp[amp > 0]

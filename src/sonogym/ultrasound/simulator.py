@@ -298,9 +298,9 @@ class ModelBasedSimulator:
             k["gain_rate"] = (tgc - att).float().to(dev)
             k["inc_block"] = _large_scale_block(h, w, dz, dx, limit=1.0e-3)
             hu = torch.arange(_HU_LUT, dtype=torch.float64) - _HU_OFFSET
-            k["z_of_hu"] = impedance_of_hu(hu).float().to(dev)
-            scale = tab.column("impedance") / impedance_of_hu(tab.column("hu"))
-            k["z_scale"] = scale.float().to(dev)
+            scale = tab.column("impedance") / impedance_of_hu(tab.column("hu"))  # (256,)
+            # Z per (label, HU): one gather with index (label << 12) | (HU + 1024)
+            k["z_lut"] = (scale[:, None] * impedance_of_hu(hu)[None, :]).reshape(-1).float().to(dev)
             k["z_gel"] = float(tab.params(GEL).impedance)
             k["ramp_rows"] = int(round(m.boundary_halfwidth / dz))
             k["ramp_box"] = 1 + 2 * int(round(m.interface_width / (2 * dz)))
@@ -383,11 +383,11 @@ class ModelBasedSimulator:
         return (lab[:, :g] == GEL).logical_or_(ct[:, :g] < self.model.gel_hu_threshold)
 
     def _scatterers(
-        self, lab: torch.Tensor, geom: tuple, k: dict
+        self, lab12: torch.Tensor, geom: tuple, k: dict
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scatterer amplitude T (1 + A_l V) per pixel (workspace "amp"), and the pixels' 32
-        random bits (workspace "bits"; bits 0-11 are used here). Shifts ``lab`` in place (it is
-        not used afterwards)."""
+        random bits (workspace "bits"; bits 0-11 are used here). ``lab12``: labels << 12."""
+        lab = lab12
         m = self.model
         origin, row, col, mix, mix_ls = geom
         b, h, w = lab.shape
@@ -396,7 +396,7 @@ class ModelBasedSimulator:
         lattice_bits(origin, row, col, h, w, m.speckle_cell, mix, out=bits, tmp=key)
         idx = key.view(torch.int32).view(-1)[: lab.numel()].view(lab.shape)  # free scratch
         torch.bitwise_and(bits, _LUT_MASK, out=idx)
-        idx.bitwise_or_(lab.bitwise_left_shift_(_LUT_BITS))
+        idx.bitwise_or_(lab12)
         amp = self._buf("amp", lab, torch.float32)
         torch.index_select(k["lut"], 0, idx.view(-1), out=amp.view(-1))
         if m.large_scale_amplitude:
@@ -450,7 +450,7 @@ class ModelBasedSimulator:
         rho.mul_(a_b).mul_(k["ar_profile"]).clamp_(max=m.reflection_clip)
         refl = _psf.blur_2d(rho, *k["psf_r"], tmp=tmp)
         # B = A_B (S (*) PSF_B).
-        amp, _ = self._scatterers(lab, geom, k)
+        amp, _ = self._scatterers(lab.bitwise_left_shift_(_LUT_BITS), geom, k)
         back = _psf.blur_2d(amp, *k["psf_b"], tmp=tmp)
         back.mul_(a_b)
         if m.i0 != 1.0:
@@ -486,9 +486,8 @@ class ModelBasedSimulator:
         hu_idx.copy_(z)  # rounds to the nearest HU
         if g:  # gel and partial-volume air at the skin read as water
             hu_idx[:, :g].masked_fill_(self._gel_mask(ct, lab, g), _HU_OFFSET)
-        torch.index_select(k["z_of_hu"], 0, hu_idx.view(-1), out=z.view(-1))
-        torch.index_select(k["z_scale"], 0, flat_lab, out=tmp.view(-1))
-        z.mul_(tmp)
+        lab12 = torch.bitwise_left_shift(lab, _LUT_BITS, out=self._buf("lab12", ct, torch.int32))
+        torch.index_select(k["z_lut"], 0, hu_idx.bitwise_or_(lab12).view(-1), out=z.view(-1))
         # Amplitude reflection R = (Z(y) - Z(y-1)) / (Z(y) + Z(y-1)) near label boundaries (G,
         # widened to the rows of the CT ramp); gel above row 0.
         refl = self._buf("r", ct)
@@ -544,14 +543,15 @@ class ModelBasedSimulator:
         torch.index_select(k["gain_rate"], 0, flat_lab, out=q.view(-1))
         torch.mul(refl, refl, out=tmp).clamp_(max=1.0 - 1e-6).neg_().log1p_()
         q.add_(tmp, alpha=1.0 / rb)
-        e_amp = tmp
-        torch.cumsum(q, 1, out=e_amp)
-        e_amp.sub_(q).clamp_(-_MAX_LOG_AMPLITUDE, _MAX_LOG_AMPLITUDE).exp_()
+        e_amp = tmp  # exclusive cumulative sum: rows above only
+        torch.cumsum(q[:, :-1], 1, out=e_amp[:, 1:])
+        e_amp[:, 0] = 0.0
+        e_amp.clamp_(-_MAX_LOG_AMPLITUDE, _MAX_LOG_AMPLITUDE).exp_()
         refl_v.mul_(cos.view(b, hb, 1, w))
         refl.mul_(e_amp)
         # Complex scatterers T (1 + A_l V) (g_re + i g_im), attenuated, plus the reflections
         # (real), blurred by the PSF as one interleaved (re, im) field.
-        amp, bits = self._scatterers(lab, geom, k)
+        amp, bits = self._scatterers(lab12, geom, k)
         amp.mul_(e_amp)
         b, h, w = ct.shape
         field = self._ws.get("field", (b, h, w, 2), torch.float32)
@@ -568,6 +568,7 @@ class ModelBasedSimulator:
             power.sqrt_()
             return
         # 10 log10(power) + gain in dB, mapped from [-DR, 0] to [0, 1].
+        # (log(0) = -inf clips to 0.)
         scale = 10.0 / math.log(10) / m.dynamic_range
-        power.clamp_(min=1e-30).log_().mul_(scale).add_(1.0 + m.gain / m.dynamic_range)
+        torch.add(1.0 + m.gain / m.dynamic_range, power.log_(), alpha=scale, out=power)
         power.clamp_(0.0, 1.0)

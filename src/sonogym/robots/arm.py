@@ -29,10 +29,11 @@ Reachability of a target, reported per arm after every step:
   ``rotation_tolerance``;
 * ``unreachable``: not reached, and either the tip target lies beyond the arm's reach (farther
   from the shoulder than the sum of the link lengths from there to the tip), or the step
-  stalled: the weighted error ``|e_p| + rotation_weight * |e_r|`` fell by less than
-  ``stall_ratio`` of its value, i.e. the arm is pinned at joint limits, stretched at a
-  singularity, or stuck in a local minimum from which this target cannot be reached. A target
-  that is merely far away (tracking limited by joint speed) is neither reached nor unreachable.
+  stalled: the step was not slowed by the joint speed limits and yet the weighted error
+  ``|e_p| + rotation_weight * |e_r|`` fell by less than ``stall_ratio`` of its value, i.e. the
+  arm is pinned at joint limits, stretched at a singularity, or stuck in a local minimum from
+  which this target cannot be reached. A target that is merely far away (the arm moving at its
+  speed limits) is neither reached nor unreachable.
 
 Nothing here produces NaN for finite inputs: the damped system is solved in float64 and any
 non-finite update is replaced by zero. NaN/inf targets or joints raise ``ValueError``.
@@ -361,6 +362,7 @@ class Arm:
         hi = torch.minimum(self.q_max, q + step)
         slack = 1e-6  # rad
         err0 = None
+        limited = torch.zeros(q.shape[0], dtype=torch.bool, device=q.device)
         for _ in range(self.config.ik_iterations):
             pos, rot, jac = self._kin_base(q)
             err = self.pose_error(pos, rot, tp, tr)
@@ -370,12 +372,14 @@ class Arm:
             pinned = ((q <= self.q_min + slack) & (dq < 0)) | ((q >= self.q_max - slack) & (dq > 0))
             dq = self._dls(jac, err, (~pinned).to(q.dtype))
             room = torch.where(dq > 0, hi - q, q - lo).clamp_min(0)
-            scale = (room / dq.abs().clamp_min(1e-12)).amin(-1, keepdim=True).clamp(max=1)
+            ratio = torch.where(dq != 0, room / dq.abs().clamp_min(1e-30), torch.inf)
+            scale = ratio.amin(-1, keepdim=True).clamp(max=1)
+            limited |= scale[:, 0] < 1.0
             q = torch.maximum(torch.minimum(q + dq * scale, hi), lo)
         frames = self.chain.forward_kinematics_tensor(q)[self._tip_index]
         pos, rot = frames[:, :3, 3], frames[:, :3, :3]
         err = self.pose_error(pos, rot, tp, tr)
-        return self._result(q, pos, rot, err, err0, tp)
+        return self._result(q, pos, rot, err, err0, tp, limited)
 
     def _result(
         self,
@@ -385,6 +389,7 @@ class Arm:
         err: torch.Tensor,
         err0: torch.Tensor,
         target_pos_base: torch.Tensor,
+        limited: torch.Tensor,
     ) -> IKResult:
         cfg = self.config
         pos_err = err[:, :3].norm(dim=-1)
@@ -392,7 +397,7 @@ class Arm:
         reached = (pos_err <= cfg.position_tolerance) & (rot_err <= cfg.rotation_tolerance)
         w1 = pos_err + cfg.rotation_weight * rot_err
         w0 = err0[:, :3].norm(dim=-1) + cfg.rotation_weight * err0[:, 3:].norm(dim=-1)
-        stalled = w1 > (1.0 - cfg.stall_ratio) * w0
+        stalled = (w1 > (1.0 - cfg.stall_ratio) * w0) & ~limited
         beyond = (target_pos_base - self._shoulder).norm(dim=-1) > self.reach
         pos_p, rot_p = self._from_base(pos, rot)
         return IKResult(

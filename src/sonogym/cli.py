@@ -46,6 +46,54 @@ def phantom(
 
 
 @app.command()
+def image(
+    seed: Annotated[int | None, typer.Option(help="Phantom seed (default 0).")] = None,
+    patient: Annotated[
+        Path | None,
+        typer.Option(help="TotalSegmentator subject folder (ct.nii.gz + segmentations/)."),
+    ] = None,
+    pose: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Surface pose 'x,z,yaw[,tilt]': x, z in mm in the patient frame (x right, "
+            "z superior), yaw and tilt in rad (yaw 3.1416 transverse, 1.5708 sagittal). "
+            "Repeatable. Default: above L4, transverse and sagittal."
+        ),
+    ] = None,
+    preset: Annotated[str, typer.Option(help="physical, sonogym or both.")] = "physical",
+    sheet: Annotated[
+        bool, typer.Option(help="One sheet: CT slice | label slice | US per pose.")
+    ] = False,
+    probe: Annotated[str, typer.Option(help="linear (2-D) or volume (3-D, 5 slices).")] = "linear",
+    spacing: Annotated[
+        float, typer.Option(help="Voxel size in mm for the phantom / patient.")
+    ] = 1.0,
+    out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/image"),
+) -> None:
+    """Render ultrasound images at surface poses of a phantom or a patient folder, to PNG."""
+    from sonogym.ultrasound.render import parse_pose, render_command
+
+    if seed is not None and patient is not None:
+        raise typer.BadParameter("give --seed or --patient, not both")
+    try:
+        poses = [parse_pose(p) for p in pose or []]
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    if patient is not None:
+        from sonogym.anatomy import load_totalsegmentator
+
+        subject = load_totalsegmentator(patient, spacing=spacing * 1e-3)
+    else:
+        from sonogym.anatomy import PhantomParams, load_phantom
+
+        subject = load_phantom(seed or 0, PhantomParams(spacing=spacing * 1e-3))
+    if preset not in ("physical", "sonogym", "both"):
+        raise typer.BadParameter(f"unknown preset {preset!r}; use physical, sonogym or both")
+    for path in render_command(subject, poses, preset, sheet, probe, out):
+        typer.echo(f"wrote {path}")
+
+
+@app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Folder for frames, videos and metrics.")] = Path(
         "runs/demo"

@@ -1,0 +1,448 @@
+"""Batched slicing of CT and label volumes along probe image planes.
+
+``Slicer(patients, probe)(pos, rot)`` samples, for N probe poses in the patient frame {P}, the CT
+(trilinear, Hounsfield units) and the label map (nearest) on every pixel of the probe's grid
+(``ProbeGeometry``): arrays of shape (N, E, H, W). One call serves envs spread over several
+patients: the patients' volumes live in one flat buffer, each env gathers from its own patient
+with flat indices (no Python loop over envs, no ``grid_sample``: flat gathers are ~5x faster on
+CPU). Anything outside a patient's volume reads as air (-1000 HU, label 0): the buffers carry a
+one-voxel air border, and coordinates are clamped into it.
+
+Sampling at the volume's resolution (``upsample=True``, the default): when the image pixels are
+finer than the voxels (0.5 mm pixels, 1 mm voxels), the slicer samples the volume on a grid of
+k x k pixel blocks, k = floor(voxel / pixel), at the block centres, and upsamples to the pixel
+grid: bilinearly for CT, by block replication for labels (so each pixel takes the label of the
+sample nearest to it, at most (k - 1) / 2 pixels away). Trilinear interpolation of a voxel grid
+has no detail finer than a voxel, so this is 4x cheaper at k = 2 and indistinguishable in the
+``physical`` preset's images (image correlation > 0.97 with direct sampling,
+tests/ultrasound/test_slicer.py). The ``sonogym`` preset squares per-pixel CT jumps, so its bone
+lines change brightness with how an edge's ramp is sampled (as the reference's did with its
+nearest-voxel lookup): same structures, correlation > 0.9, line brightness within ~30 %.
+``upsample=False`` samples every pixel directly.
+
+Gathers run depth-first along the volume's contiguous axis (y, the beam's usual direction) in
+chunks of envs that fit in cache, with int32 indices and ``index_select`` (3-5x faster than
+``take``/advanced indexing on CPU), and all temporaries live in reused buffers.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from sonogym.anatomy.patient import Patient
+from sonogym.ultrasound._workspace import Workspace
+from sonogym.ultrasound.probe import ProbeGeometry
+
+#: Value of anything outside a patient's volume.
+AIR_HU = -1000.0
+
+
+@dataclass(frozen=True, eq=False)
+class Slices:
+    """CT and label samples on N probes' pixel grids, plus where those pixels are.
+
+    Attributes:
+        ct: (N, E, H, W) float32, Hounsfield units.
+        labels: (N, E, H, W) uint8, ids of ``sonogym.anatomy.labels``.
+        origin: (N, E, 3) float64, patient-frame position (m) of pixel (row 0, column 0) of
+            each elevation slice.
+        row_step: (N, 3) float64, patient-frame displacement (m) from one row to the next
+            (depth_spacing * z_U).
+        col_step: (N, 3) float64, displacement (m) from one column to the next
+            (width_spacing * x_U).
+        seed: (N,) int64, speckle seed of each env's patient (speckle is a function of the
+            patient-frame position and this seed only).
+        patient_index: (N,) int64, index of each env's patient in the slicer.
+        probe: the pixel grid.
+    """
+
+    ct: torch.Tensor
+    labels: torch.Tensor
+    origin: torch.Tensor
+    row_step: torch.Tensor
+    col_step: torch.Tensor
+    seed: torch.Tensor
+    patient_index: torch.Tensor
+    probe: ProbeGeometry
+
+    @property
+    def num_envs(self) -> int:
+        return self.ct.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.ct.device
+
+    def positions(self) -> torch.Tensor:
+        """(N, E, H, W, 3) float32 patient-frame position of every pixel, metres (not used on
+        the hot path; for tests and tools)."""
+        _, _, h, w = self.ct.shape
+        j = torch.arange(h, dtype=torch.float64, device=self.device)
+        i = torch.arange(w, dtype=torch.float64, device=self.device)
+        p = (
+            self.origin[:, :, None, None, :]
+            + j[None, None, :, None, None] * self.row_step[:, None, None, None, :]
+            + i[None, None, None, :, None] * self.col_step[:, None, None, None, :]
+        )
+        return p.float()
+
+    def select(self, index: torch.Tensor | slice | int) -> Slices:
+        """The slices of a subset of envs (same pixel grid)."""
+        if isinstance(index, int):
+            index = slice(index, index + 1)
+        return Slices(
+            self.ct[index],
+            self.labels[index],
+            self.origin[index],
+            self.row_step[index],
+            self.col_step[index],
+            self.seed[index],
+            self.patient_index[index],
+            self.probe,
+        )
+
+    @staticmethod
+    def cat(parts: Sequence[Slices]) -> Slices:
+        """Concatenate slices of the same probe along the env axis."""
+        if not parts:
+            raise ValueError("Slices.cat needs at least one Slices")
+        probe = parts[0].probe
+        if any(p.probe != probe for p in parts):
+            raise ValueError("Slices.cat: all parts must share one ProbeGeometry")
+        return Slices(
+            *(torch.cat([getattr(p, f) for p in parts]) for f in _TENSOR_FIELDS), probe=probe
+        )
+
+
+_TENSOR_FIELDS = ("ct", "labels", "origin", "row_step", "col_step", "seed", "patient_index")
+
+
+def speckle_seed(patient: Patient) -> int:
+    """A patient's speckle seed: ``meta['speckle_seed']`` if set, else a stable hash of its name
+    (so the same patient always shows the same speckle)."""
+    seed = patient.meta.get("speckle_seed") if isinstance(patient.meta, dict) else None
+    if seed is None:
+        seed = zlib.crc32(patient.name.encode())
+    return int(seed) & 0x7FFFFFFF
+
+
+def check_poses(pos: torch.Tensor, rot: torch.Tensor) -> None:
+    """Raise a clear error unless pos is (N, 3) and rot (N, 3, 3), both finite."""
+    if not isinstance(pos, torch.Tensor) or not isinstance(rot, torch.Tensor):
+        raise TypeError("probe poses must be torch tensors: pos (N, 3) and rot (N, 3, 3)")
+    if pos.ndim != 2 or pos.shape[-1] != 3:
+        raise ValueError(f"probe positions must have shape (N, 3), got {tuple(pos.shape)}")
+    if rot.shape != (pos.shape[0], 3, 3):
+        raise ValueError(
+            f"probe rotations must have shape (N, 3, 3) = ({pos.shape[0]}, 3, 3) to match the "
+            f"positions, got {tuple(rot.shape)}"
+        )
+    if not torch.isfinite(pos).all() or not torch.isfinite(rot).all():
+        bad = (~torch.isfinite(pos).all(-1)) | (~torch.isfinite(rot).flatten(1).all(-1))
+        raise ValueError(
+            f"probe poses contain NaN/inf (envs {bad.nonzero().flatten().tolist()[:10]})"
+        )
+
+
+def upsample_linear(src: torch.Tensor, dim: int, k: int, out: torch.Tensor) -> torch.Tensor:
+    """Linear upsampling by an integer factor k along ``dim`` into ``out`` (size n * k there).
+
+    Output sample m * k + r sits at source coordinate m + (r + 0.5) / k - 0.5 (sample centres
+    aligned, like ``F.interpolate(..., align_corners=False)``), clamped at the edges."""
+    n = src.shape[dim]
+    shape = list(out.shape)
+    ov = (
+        out.view(*shape[:dim], n, k, *shape[dim + 1 :])
+        if dim != -1
+        else out.view(*shape[:-1], n, k)
+    )
+    d = dim if dim >= 0 else src.ndim + dim
+    for r in range(k):
+        t = (r + 0.5) / k - 0.5
+        o = ov.select(d + 1, r)
+        if t == 0 or n == 1:
+            o.copy_(src)
+        elif t > 0:  # between m and m + 1
+            torch.lerp(
+                src.narrow(d, 0, n - 1), src.narrow(d, 1, n - 1), t, out=o.narrow(d, 0, n - 1)
+            )
+            o.narrow(d, n - 1, 1).copy_(src.narrow(d, n - 1, 1))
+        else:  # between m - 1 and m
+            torch.lerp(
+                src.narrow(d, 1, n - 1), src.narrow(d, 0, n - 1), -t, out=o.narrow(d, 1, n - 1)
+            )
+            o.narrow(d, 0, 1).copy_(src.narrow(d, 0, 1))
+    return out
+
+
+class Slicer:
+    """Sample CT and labels of several patients on N probes' pixel grids in one batched call.
+
+    Args:
+        patients: one Patient or a sequence of them.
+        probe: the pixel grid (default: the paper's 2-D linear probe).
+        device: where the volumes and the outputs live (default: the first patient's CT's).
+        upsample: sample at the volume's resolution and upsample to finer pixels (see the module
+            docstring); False samples every pixel.
+        chunk_samples: volume samples per chunk of envs (bounds the scratch memory and keeps it
+            in cache); default 2**17 on CPU, everything at once on CUDA.
+
+    Memory: a padded copy of every patient, CT as float16 (HU to 0.5 HU below 1024 HU, 1 HU
+    to 2048, 2 HU above) and labels as uint8: 3 bytes per voxel, plus reusable scratch
+    buffers (about 70 bytes per sample of one chunk: 9 MB on CPU).
+    """
+
+    def __init__(
+        self,
+        patients: Patient | Sequence[Patient],
+        probe: ProbeGeometry | None = None,
+        device: torch.device | str | None = None,
+        upsample: bool = True,
+        chunk_samples: int | None = None,
+    ) -> None:
+        if isinstance(patients, Patient):
+            patients = [patients]
+        patients = list(patients)
+        if not patients or not all(isinstance(p, Patient) for p in patients):
+            raise TypeError("Slicer needs one Patient or a non-empty sequence of Patients")
+        self.probe = probe if probe is not None else ProbeGeometry.linear_2d()
+        if not isinstance(self.probe, ProbeGeometry):
+            raise TypeError(f"probe must be a ProbeGeometry, got {type(self.probe).__name__}")
+        self.device = torch.device(device) if device is not None else patients[0].ct.device
+        self.upsample = bool(upsample)
+        self.names = [p.name for p in patients]
+        if chunk_samples is None:
+            chunk_samples = 2**17 if self.device.type == "cpu" else 2**40
+        self.chunk_samples = int(chunk_samples)
+
+        cts, labs, offs, dims, orgs, sps, seeds = [], [], [], [], [], [], []
+        off = 0
+        for p in patients:
+            dx, dy, dz = (s + 2 for s in p.shape)
+            ct = torch.full((dx, dy, dz), AIR_HU, dtype=torch.float16)
+            ct[1:-1, 1:-1, 1:-1] = p.ct.to("cpu")
+            lab = torch.zeros((dx, dy, dz), dtype=torch.uint8)
+            lab[1:-1, 1:-1, 1:-1] = p.labels.to("cpu")
+            # Memory order (X, Z, Y): y (anterior, the beam's usual direction) is contiguous, so
+            # the gathers below, which run along depth, touch neighbouring memory.
+            cts.append(ct.permute(0, 2, 1).reshape(-1))
+            labs.append(lab.permute(0, 2, 1).reshape(-1))
+            offs.append(off)
+            off += ct.numel()
+            dims.append([dx, dy, dz])
+            sp = p.spacing
+            orgs.append(p.origin - sp)  # padded voxel 0 sits one voxel before the origin
+            sps.append(sp)
+            seeds.append(speckle_seed(p))
+        if off >= 2**31:
+            raise ValueError(f"Slicer: {off} voxels in all; at most 2**31 fit one slicer")
+        dev = self.device
+        self._ct = torch.cat(cts).to(dev)
+        self._lab = torch.cat(labs).to(dev)
+        dims_t = torch.tensor(dims, dtype=torch.int64)
+        self._dmax = (dims_t - 2).to(dev, torch.float32)  # (P, 3) largest lower-corner index
+        # strides of (x, y, z) in the (X, Z, Y) memory order
+        strides = torch.stack(
+            [dims_t[:, 1] * dims_t[:, 2], torch.ones_like(dims_t[:, 0]), dims_t[:, 1]], 1
+        )
+        self._strides = strides.to(dev, torch.int32)  # (P, 3)
+        self._offsets = torch.tensor(offs, dtype=torch.int32, device=dev)
+        self._origin = torch.tensor(np.array(orgs), dtype=torch.float64, device=dev)  # (P, 3)
+        self._spacing = torch.tensor(np.array(sps), dtype=torch.float64, device=dev)  # (P, 3)
+        self._seeds = torch.tensor(seeds, dtype=torch.int64, device=dev)
+        self._ws = Workspace(dev)
+        min_spacing = min(float(s.min()) for s in sps)
+        pr = self.probe
+        if self.upsample:
+            self.block = (
+                max(1, int(min_spacing / pr.depth_spacing + 1e-6)),
+                max(1, int(min_spacing / pr.width_spacing + 1e-6)),
+            )
+        else:
+            self.block = (1, 1)
+
+    @property
+    def num_patients(self) -> int:
+        return len(self.names)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the slicer: volume buffers and scratch."""
+        return self._ct.numel() * 2 + self._lab.numel() + self._ws.nbytes
+
+    def default_patient_index(self, n: int) -> torch.Tensor:
+        """Round-robin assignment of n envs to the patients (env i -> patient i % P)."""
+        return torch.arange(n, device=self.device) % self.num_patients
+
+    # --------------------------------------------------------------- geometry
+    def _geometry(
+        self, pos: torch.Tensor, rot: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        pr = self.probe
+        pos = pos.to(self.device, torch.float64)
+        rot = rot.to(self.device, torch.float64)
+        xu, yu, zu = rot[..., 0], rot[..., 1], rot[..., 2]
+        x0 = -(pr.width_px - 1) / 2 * pr.width_spacing
+        ye = pr.elevation_positions(self.device)  # (E,)
+        origin = pos[:, None, :] + x0 * xu[:, None, :] + ye[None, :, None] * yu[:, None, :]
+        return origin, zu * pr.depth_spacing, xu * pr.width_spacing
+
+    # ---------------------------------------------------------------- slicing
+    def __call__(
+        self,
+        pos: torch.Tensor,
+        rot: torch.Tensor,
+        patient_index: torch.Tensor | None = None,
+        out: Slices | None = None,
+    ) -> Slices:
+        """Slice N probe poses.
+
+        Args:
+            pos: (N, 3) probe-face centres in {P}, metres.
+            rot: (N, 3, 3) probe orientations in {P}; columns x_U, y_U, z_U.
+            patient_index: (N,) int, which patient each env images (default round-robin).
+            out: a previous result whose ct and labels tensors are overwritten (saves
+                allocating them on every call).
+
+        Returns:
+            ``Slices`` with ct (N, E, H, W) float32 HU and labels (N, E, H, W) uint8.
+        """
+        check_poses(pos, rot)
+        n = pos.shape[0]
+        if patient_index is None:
+            pidx = self.default_patient_index(n)
+        else:
+            pidx = torch.as_tensor(patient_index, device=self.device).long().reshape(-1)
+            if pidx.shape[0] != n:
+                raise ValueError(f"patient_index must have shape ({n},), got {tuple(pidx.shape)}")
+            if n and (int(pidx.min()) < 0 or int(pidx.max()) >= self.num_patients):
+                raise ValueError(
+                    f"patient_index out of range: the slicer holds {self.num_patients} patients"
+                )
+        pr = self.probe
+        shape = (n, pr.elevation_px, pr.depth_px, pr.width_px)
+        if out is not None and out.ct.shape == shape and out.ct.device == self.device:
+            ct, lab = out.ct, out.labels
+        else:
+            ct = torch.empty(shape, dtype=torch.float32, device=self.device)
+            lab = torch.empty(shape, dtype=torch.uint8, device=self.device)
+        origin, row_step, col_step = self._geometry(pos, rot)
+        kz, kx = self.block
+        per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
+        step = max(1, self.chunk_samples // per_env)
+        for s in range(0, n, step):  # chunks of envs: bounded scratch, cache-sized on CPU
+            c = slice(s, min(n, s + step))
+            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c])
+        return Slices(ct, lab, origin, row_step, col_step, self._seeds[pidx], pidx, pr)
+
+    def _sample(
+        self,
+        origin: torch.Tensor,
+        row_step: torch.Tensor,
+        col_step: torch.Tensor,
+        pidx: torch.Tensor,
+        ct_out: torch.Tensor,
+        lab_out: torch.Tensor,
+    ) -> None:
+        ws = self._ws
+        n, e, h, w = ct_out.shape
+        kz, kx = self.block
+        hc, wc = -(-h // kz), -(-w // kx)
+        # Samples at the centres of kz x kx pixel blocks, in padded voxel coordinates, laid out
+        # (N, E, Wc, Hc): depth runs fastest, along the volume's contiguous y axis.
+        org = self._origin[pidx]  # (N, 3)
+        sp = self._spacing[pidx]
+        v0 = (
+            origin
+            + (kz - 1) / 2 * row_step[:, None]
+            + (kx - 1) / 2 * col_step[:, None]
+            - org[:, None]
+        ) / sp[:, None]  # (N, E, 3)
+        dvr = kz * row_step / sp  # (N, 3) per coarse row
+        dvc = kx * col_step / sp  # (N, 3) per coarse column
+        m = torch.arange(hc, device=self.device, dtype=torch.float64)
+        l_ = torch.arange(wc, device=self.device, dtype=torch.float64)
+        # a: per (env, slice, column), b: per (env, row); coordinate = a + b.
+        a = (v0[:, :, None, :] + l_[None, None, :, None] * dvc[:, None, None, :]).float()
+        b = (m[None, :, None] * dvr[:, None, :]).float()  # (N, Hc, 3)
+        shape = (n, e, wc, hc)
+        dmax = self._dmax[pidx]  # (N, 3)
+        strides = self._strides[pidx]  # (N, 3) int32
+        idx = ws.get("idx", shape, torch.int32)
+        idx.copy_(self._offsets[pidx].view(n, 1, 1, 1).expand(shape))
+        tmp_i = ws.get("tmp_i", shape, torch.int32)
+        near = ws.get("near", shape, torch.float32)  # offset of the nearest corner
+        near.zero_()
+        fr = []
+        for c in range(3):
+            v = ws.get(f"v{c}", shape, torch.float32)
+            i0 = ws.get("i0", shape, torch.float32)
+            torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
+            torch.floor(v, out=i0)
+            i0.clamp_(min=0)
+            torch.minimum(i0, dmax[:, c].view(n, 1, 1, 1), out=i0)
+            f = v.sub_(i0).clamp_(0, 1)  # fraction, in place of v
+            fr.append(f)
+            tmp_i.copy_(i0)
+            if c != 1:
+                tmp_i.mul_(strides[:, c].view(n, 1, 1, 1))
+            idx.add_(tmp_i)
+            # nearest corner: + stride where the fraction >= 0.5
+            torch.round(f, out=i0)
+            near.add_(i0.mul_(strides[:, c].view(n, 1, 1, 1).float()))
+        fx, fy, fz = fr
+        # Labels: nearest voxel.
+        tmp_i.copy_(near).add_(idx)
+        lab_c = ws.get("lab_c", shape, torch.uint8)
+        torch.index_select(self._lab, 0, tmp_i.view(-1), out=lab_c.view(-1))
+        # CT: trilinear from the 8 corners (pairs along the contiguous y axis).
+        vol = self._ct
+        g16 = ws.get("g16", shape, torch.float16)
+        lo = ws.get("lo", shape, torch.float32)
+        hi = ws.get("hi", shape, torch.float32)
+        acc = [ws.get(f"acc{i}", shape, torch.float32) for i in range(3)]
+        sx = strides[:, 0].view(n, 1, 1, 1)
+        sz = strides[:, 2].view(n, 1, 1, 1)
+
+        def pair(j: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
+            torch.index_select(vol, 0, j.view(-1), out=g16.view(-1))
+            lo.copy_(g16)
+            torch.index_select(vol, 0, j.add_(1).view(-1), out=g16.view(-1))
+            hi.copy_(g16)
+            return torch.lerp(lo, hi, fy, out=dst)
+
+        def along_z(base: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
+            torch.add(base, 0, out=tmp_i)
+            p0 = pair(tmp_i, acc[2])
+            torch.add(base, sz, out=tmp_i)
+            p1 = pair(tmp_i, dst)
+            return torch.lerp(p0, p1, fz, out=dst)
+
+        c0 = along_z(idx, acc[0])
+        idx.add_(sx)
+        c1 = along_z(idx, acc[1])
+        ctc = torch.lerp(c0, c1, fx, out=acc[0])  # (N, E, Wc, Hc)
+        # Upsample to the pixel grid and transpose to (N, E, H, W).
+        ctc_t = ctc.transpose(-1, -2)  # (N, E, Hc, Wc) view
+        lab_t = lab_c.transpose(-1, -2)
+        exact = hc * kz == h and wc * kx == w
+        if (kz, kx) == (1, 1):
+            ct_out.copy_(ctc_t)
+            lab_out.copy_(lab_t)
+            return
+        tmp = ws.get("up", (n, e, hc * kz, wc), torch.float32)
+        upsample_linear(ctc_t, 2, kz, tmp) if kz > 1 else tmp.copy_(ctc_t)
+        full = ct_out if exact else ws.get("full", (n, e, hc * kz, wc * kx), torch.float32)
+        upsample_linear(tmp, 3, kx, full) if kx > 1 else full.copy_(tmp)
+        labs = lab_out if exact else ws.get("labf", (n, e, hc * kz, wc * kx), torch.uint8)
+        labs.view(n, e, hc, kz, wc, kx).copy_(
+            lab_t[:, :, :, None, :, None].expand(n, e, hc, kz, wc, kx)
+        )
+        if not exact:
+            ct_out.copy_(full[:, :, :h, :w])
+            lab_out.copy_(labs[:, :, :h, :w])

@@ -1,0 +1,166 @@
+"""Stateless speckle noise fixed in patient space.
+
+The scatterer noise at a pixel is a hash of the patient-frame lattice point nearest to the pixel
+(lattice spacing ``cell``, 0.5 mm by default, like the reference's noise maps) and of the
+patient's speckle seed. Nothing is stored per patient (the reference keeps an 830 MB random
+volume per patient): the same pose always gives the same noise, a small probe motion shifts the
+noise with the anatomy, and a different seed gives a different, independent patient.
+
+Hashing runs on every pixel, so it is built from a few full-array integer operations:
+
+* pixel (j, i) of an image lies at ``origin + j * row_step + i * col_step``; its lattice
+  coordinates are ``a(j) + b(i)`` per axis, with the row part a and the column part b computed
+  on the small (B, H) and (B, W) grids;
+* a and b are stored in fixed point (``FRAC_BITS`` fractional bits) and the three axes are
+  packed into one int64 (``FIELD_BITS`` per axis, no carries between fields), so one broadcast
+  integer addition gives the packed lattice coordinates of every pixel and one mask drops the
+  fractions;
+* the packed key, xor the seed, goes through MurmurHash3's 64-bit finaliser (xor-shifts and
+  wrapping int64 multiplies, the same on CPU and CUDA; torch's shifts are arithmetic, which
+  changes the mixer a little but not its quality: neighbouring pixels' bits are uncorrelated,
+  tests/ultrasound/test_speckle.py); its low 32 bits are the pixel's random bits.
+
+Range: lattice coordinates span 2^(FIELD_BITS - FRAC_BITS) cells (4 m at 0.5 mm) centred on the
+patient frame's origin.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+FRAC_BITS = 8
+FIELD_BITS = 21
+_INT_BITS = FIELD_BITS - FRAC_BITS
+_OFFSET = 2 ** (_INT_BITS - 1)  # cells; lattice coordinate 0 sits at -_OFFSET cells
+_FIELD_MAX = 2**FIELD_BITS
+_FRAC_MASK = (
+    (2**FRAC_BITS - 1)
+    | ((2**FRAC_BITS - 1) << FIELD_BITS)
+    | ((2**FRAC_BITS - 1) << (2 * FIELD_BITS))
+)
+_INT_MASK = (2 ** (3 * FIELD_BITS) - 1) ^ _FRAC_MASK
+
+
+def _signed(x: int) -> int:
+    """A 64-bit constant as a signed int64."""
+    x &= 2**64 - 1
+    return x - 2**64 if x >= 2**63 else x
+
+
+# MurmurHash3's 64-bit finaliser constants.
+_M1 = _signed(0xFF51AFD7ED558CCD)
+_M2 = _signed(0xC4CEB9FE1A85EC53)
+
+
+def splitmix64(x: int) -> int:
+    """A well-mixed signed 64-bit integer from any int (per-patient seed mixing, host side)."""
+    x = (x + 0x9E3779B97F4A7C15) & (2**64 - 1)
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & (2**64 - 1)
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & (2**64 - 1)
+    return _signed(x ^ (x >> 31))
+
+
+def seed_mix(seed: torch.Tensor, salt: int = 0) -> torch.Tensor:
+    """(B,) int64 seeds -> (B,) well-mixed int64 keys (``salt`` separates independent fields)."""
+    vals = [splitmix64(int(s) * 1000003 + salt) for s in seed.tolist()]
+    return torch.tensor(vals, dtype=torch.int64, device=seed.device)
+
+
+def packed_coordinates(
+    origin: torch.Tensor,
+    row_step: torch.Tensor,
+    col_step: torch.Tensor,
+    height: int,
+    width: int,
+    cell: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row and column parts of the packed fixed-point lattice coordinates.
+
+    Args:
+        origin: (B, 3) position of pixel (0, 0), metres (float64).
+        row_step, col_step: (B, 3) displacement per row / column, metres.
+        height, width: image size in pixels.
+        cell: lattice spacing, metres.
+
+    Returns:
+        rows (B, H) and cols (B, W) int64 such that ``(rows[:, :, None] + cols[:, None, :]) &
+        INT_MASK`` identifies the lattice point nearest to every pixel.
+    """
+    dev = origin.device
+    o = origin.double() / cell
+    r = row_step.double() / cell
+    c = col_step.double() / cell
+    j = torch.arange(height, dtype=torch.float64, device=dev)
+    i = torch.arange(width, dtype=torch.float64, device=dev)
+    a = o[:, None, :] + j[None, :, None] * r[:, None, :] + (0.5 + _OFFSET)  # (B, H, 3)
+    b = i[None, :, None] * c[:, None, :]  # (B, W, 3)
+    bmin = b.amin(1, keepdim=True)
+    a = a + bmin
+    b = b - bmin
+    scale = float(2**FRAC_BITS)
+    afx = torch.floor(a * scale).long()
+    bfx = torch.floor(b * scale).long()
+    lo = afx.amin()
+    hi = afx.amax(1).unsqueeze(1) + bfx.amax(1).unsqueeze(1)
+    if int(lo) < 0 or int(hi.max()) >= _FIELD_MAX:
+        raise ValueError(
+            "speckle: pixel positions lie beyond the noise lattice's range "
+            f"(+-{_OFFSET * cell:.2f} m around the patient origin)"
+        )
+    shifts = (2 * FIELD_BITS, FIELD_BITS, 0)
+    rows = sum(afx[..., k] << s for k, s in enumerate(shifts))
+    cols = sum(bfx[..., k] << s for k, s in enumerate(shifts))
+    return rows, cols
+
+
+def hash_bits(
+    rows: torch.Tensor,
+    cols: torch.Tensor,
+    mix: torch.Tensor,
+    out: torch.Tensor | None = None,
+    tmp: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(B, H, W) int64 random values from packed coordinates and (B,) mixed seeds.
+
+    The low 32 bits are well mixed; use them (``(h >> k) & mask`` with k + bits <= 32).
+    ``out`` and ``tmp`` are optional (B, H, W) int64 buffers."""
+    shape = (rows.shape[0], rows.shape[1], cols.shape[1])
+    h = torch.add(rows[:, :, None], cols[:, None, :], out=out)
+    if tmp is None:
+        tmp = torch.empty(shape, dtype=torch.int64, device=h.device)
+    h.bitwise_and_(_INT_MASK)
+    h.bitwise_xor_(mix.view(-1, 1, 1))
+    for mult in (_M1, _M2, None):
+        h.bitwise_xor_(torch.bitwise_right_shift(h, 33, out=tmp))
+        if mult is not None:
+            h.mul_(mult)
+    return h
+
+
+def lattice_bits(
+    origin: torch.Tensor,
+    row_step: torch.Tensor,
+    col_step: torch.Tensor,
+    height: int,
+    width: int,
+    cell: float,
+    mix: torch.Tensor,
+    out: torch.Tensor | None = None,
+    tmp: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(B, H, W) int64 random values, a function of each pixel's nearest lattice point and the
+    image's seed only."""
+    rows, cols = packed_coordinates(origin, row_step, col_step, height, width, cell)
+    return hash_bits(rows, cols, mix, out, tmp)
+
+
+def gaussian_quantiles(bits: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(2**bits,) standard-normal quantiles at (k + 0.5) / 2**bits: a table that turns uniform
+    random bits into N(0, 1) samples, scaled to unit variance."""
+    n = 2**bits
+    p = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    q = math.sqrt(2.0) * torch.erfinv(2 * p - 1)
+    q = q / q.pow(2).mean().sqrt()  # exact unit variance despite the quantisation
+    return q.to(dtype=dtype, device=device)

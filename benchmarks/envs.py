@@ -52,10 +52,17 @@ def main() -> None:
         for robot in ("kuka_med14", None):
             for n in args.envs:
                 r = bench(
-                    "SonoGym/Navigation-v0", n, args.steps, device, simulator=args.simulator, robot=robot
+                    "SonoGym/Navigation-v0",
+                    n,
+                    args.steps,
+                    device,
+                    simulator=args.simulator,
+                    robot=robot,
                 )
                 rows.append((device, "navigation", str(robot), n, r["ms/step"], r["env-steps/s"]))
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, simulator {args.simulator}")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, simulator {args.simulator}"
+    )
     print(f"| device | task | robot | envs | ms/step | env-steps/s |")
     print("|---|---|---|---|---|---|")
     for d, t, rb, n, ms, sps in rows:

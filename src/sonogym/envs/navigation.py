@@ -79,7 +79,11 @@ class NavigationConfig:
 
 
 def navigation_reward(
-    p_before: torch.Tensor, q_before: torch.Tensor, p_after: torch.Tensor, q_after: torch.Tensor, w1: float
+    p_before: torch.Tensor,
+    q_before: torch.Tensor,
+    p_after: torch.Tensor,
+    q_after: torch.Tensor,
+    w1: float,
 ) -> torch.Tensor:
     """Paper's reward: w1 (||p_t|| - ||p_t+1||) + ||q_t|| - ||q_t+1||; p in metres (converted to
     mm here, w1 is per mm), q axis-angle in rad. Shapes (N, 3) -> (N,)."""
@@ -114,7 +118,7 @@ def navigation_expert(
     r_gu = matrix_from_axis_angle(q)
     goal_in_u = -(r_gu.transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1)
     scale = torch.tensor(action_scale, dtype=state.dtype, device=state.device)
-    err = torch.stack([goal_in_u[:, 0], goal_in_u[:, 1], -q[:, 2]], -1)
+    err = torch.stack([goal_in_u[:, 0], goal_in_u[:, 1], q[:, 2]], -1)
     return (gain * err / scale).clamp(-action_bound, action_bound).float()
 
 
@@ -146,7 +150,9 @@ class NavigationEnv(TorchVectorEnv):
         self.command = self.goal_cmd.clone()
         self.action_scale = torch.tensor(cfg.action_scale, dtype=dt, device=self.device)
         self.action_limit = torch.tensor(cfg.action_limit, dtype=dt, device=self.device)
-        bound = float(max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True)))
+        bound = float(
+            max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
+        )
         self.action_bound = bound
         obs_space = {
             "us": spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32),
@@ -179,8 +185,12 @@ class NavigationEnv(TorchVectorEnv):
         dz = delta[:, 0] * rot[:, 2, 0] + delta[:, 1] * rot[:, 2, 1]
         w = cfg.workspace_half_extent
         cmd = self.command
-        cmd[:, 0] = torch.minimum(torch.maximum(cmd[:, 0] + dx, self.goal_cmd[:, 0] - w), self.goal_cmd[:, 0] + w)
-        cmd[:, 1] = torch.minimum(torch.maximum(cmd[:, 1] + dz, self.goal_cmd[:, 1] - w), self.goal_cmd[:, 1] + w)
+        cmd[:, 0] = torch.minimum(
+            torch.maximum(cmd[:, 0] + dx, self.goal_cmd[:, 0] - w), self.goal_cmd[:, 0] + w
+        )
+        cmd[:, 1] = torch.minimum(
+            torch.maximum(cmd[:, 1] + dz, self.goal_cmd[:, 1] - w), self.goal_cmd[:, 1] + w
+        )
         cmd[:, 2] = (cmd[:, 2] + delta[:, 2]).clamp(*cfg.yaw_range)
         self.scene.step(cmd)
         self._prev_state = self._state.clone()

@@ -67,7 +67,9 @@ class ProbeScene:
         self.probe_pos = torch.zeros(num_envs, 3, device=device)
         self.probe_rot = torch.eye(3, device=device).repeat(num_envs, 1, 1)
         self.reachable = torch.ones(num_envs, dtype=torch.bool, device=device)
-        self._cmd = torch.zeros(num_envs, 4, device=device)  # last command per env (x, z, yaw, tilt)
+        self._cmd = torch.zeros(
+            num_envs, 4, device=device
+        )  # last command per env (x, z, yaw, tilt)
         if robot is not None:
             self._init_robot(robot)
         if render:
@@ -116,7 +118,9 @@ class ProbeScene:
             self.probe_pos, self.probe_rot = self.surface_pose(cmd)
             return
         self._cmd[:, : cmd.shape[1]] = cmd
-        res = self.controller.step(self.q, *self._cmd_args(self._cmd[:, : cmd.shape[1]]), patient=self.patient_index)
+        res = self.controller.step(
+            self.q, *self._cmd_args(self._cmd[:, : cmd.shape[1]]), patient=self.patient_index
+        )
         self._store(slice(None), res)
 
     @staticmethod

@@ -72,7 +72,9 @@ def run_demo(
                 img = info["final_obs"][0, 0]
             else:
                 img = obs[0, 0]
-            paths.append(env.scene.probe_pos[0].cpu().numpy().copy() if final is None else paths[-1])
+            paths.append(
+                env.scene.probe_pos[0].cpu().numpy().copy() if final is None else paths[-1]
+            )
             frame = _frame(env, img, np.array(paths))
             frames.append(frame)
             if t % max(1, env.episode_length // 8) == 0 or final is not None:

@@ -68,8 +68,10 @@ class SurfaceController:
         z: torch.Tensor,
         yaw: torch.Tensor,
         tilt: torch.Tensor | None = None,
+        patient: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Surface command (N,) each, metres / rad -> probe target pos (N, 3), rot (N, 3, 3)."""
+        """Surface command (N,) each, metres / rad -> probe target pos (N, 3), rot (N, 3, 3).
+        ``patient`` (N,) picks each env's skin when the controller holds stacked skins."""
         n = x.shape[0] if x.dim() == 1 else None
         for name, v in (("x", x), ("z", z), ("yaw", yaw), ("tilt", tilt)):
             if v is None:
@@ -84,7 +86,7 @@ class SurfaceController:
         dev, dt = self.arm.device, self.arm.dtype
         x, z, yaw = (v.to(dev, dt) for v in (x, z, yaw))
         tilt = None if tilt is None else tilt.to(dev, dt)
-        pos, rot = self.skin.surface_pose(x, z, yaw, tilt)
+        pos, rot = self.skin.surface_pose(x, z, yaw, tilt, patient=patient)
         return pos.to(dt), rot.to(dt)
 
     @staticmethod
@@ -108,9 +110,10 @@ class SurfaceController:
         z: torch.Tensor,
         yaw: torch.Tensor,
         tilt: torch.Tensor | None = None,
+        patient: torch.Tensor | None = None,
     ) -> SurfaceStep:
         """One control step of joints q (N, 7) toward the surface command."""
-        target_pos, target_rot = self.target_pose(x, z, yaw, tilt)
+        target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
         return self._wrap(self.arm.ik_step(q, target_pos, target_rot), target_pos, target_rot)
 
     def settle(
@@ -121,20 +124,24 @@ class SurfaceController:
         yaw: torch.Tensor,
         tilt: torch.Tensor | None = None,
         steps: int | None = None,
+        patient: torch.Tensor | None = None,
     ) -> SurfaceStep:
         """``steps`` (default ``settle_steps``) control steps toward a fixed surface command."""
-        target_pos, target_rot = self.target_pose(x, z, yaw, tilt)
+        target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
         result = self.arm.track(q, target_pos, target_rot, steps or self.settle_steps)
         return self._wrap(result, target_pos, target_rot)
 
     def measured_command(
-        self, probe_pos: torch.Tensor, probe_rot: torch.Tensor
+        self, probe_pos: torch.Tensor, probe_rot: torch.Tensor, patient: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Surface command (x, z, yaw in [0, 2 pi), tilt) of a reached probe pose."""
-        return self.skin.command_from_pose(probe_pos, probe_rot)
+        return self.skin.command_from_pose(probe_pos, probe_rot, patient)
 
-    def skin_distance(self, probe_pos: torch.Tensor) -> torch.Tensor:
+    def skin_distance(
+        self, probe_pos: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(N,) signed distance of the probe-face centre from the skin along the inward normal,
         metres (positive: inside the body), at the probe's (x, z)."""
         x, z = probe_pos[:, 0], probe_pos[:, 2]
-        return ((probe_pos - self.skin.point(x, z)) * self.skin.normal(x, z)).sum(-1)
+        pt, n = self.skin.point(x, z, patient), self.skin.normal(x, z, patient)
+        return ((probe_pos - pt) * n).sum(-1)

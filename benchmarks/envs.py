@@ -63,7 +63,7 @@ def main() -> None:
     print(
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, simulator {args.simulator}"
     )
-    print(f"| device | task | robot | envs | ms/step | env-steps/s |")
+    print("| device | task | robot | envs | ms/step | env-steps/s |")
     print("|---|---|---|---|---|---|")
     for d, t, rb, n, ms, sps in rows:
         print(f"| {d} | {t} | {rb} | {n} | {ms:.1f} | {sps:.0f} |")

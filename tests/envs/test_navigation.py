@@ -116,7 +116,7 @@ def test_partial_reset_leaves_other_envs_untouched():
 def test_autoreset_same_step_returns_final_obs_and_metrics():
     env = _env(2, episode_length=3)
     obs, info = env.reset(seed=0)
-    for t in range(3):
+    for _ in range(3):
         obs, _, term, trunc, info = env.step(torch.zeros(2, 3))
     assert trunc.all() and not term.any()
     assert info["_final_obs"].all()

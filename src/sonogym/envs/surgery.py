@@ -231,6 +231,7 @@ def surgery_expert(
     radius: torch.Tensor,
     skin_distance: float = 0.05,
     approach: float = 0.01,
+    stop_short: float = 2e-4,
     position_gain: float = 0.1,
     rotation_gain: float = 0.1,
     max_step: float = 0.01,
@@ -242,9 +243,12 @@ def surgery_expert(
 
     ``state`` (N, 6) is the tip pose in {G} (``info["state"]``: position m, rotation vector
     rad), ``radius`` (N,) the planned corridor radius r (``info["radius"]``). The waypoint is
-    {G}'s origin once the tip is within r of the trajectory axis with sin(theta) < 0.2
-    (reference), or already past p_l inside the corridor; before that it is the axis point
-    ``approach`` above p_l (in C_free, so the approach never grazes the unsafe region). Action:
+    the axis point ``stop_short`` before {G} (the target lies on C_drill's boundary p_z = 0, so
+    a controller converging onto it would cross it by rounding) once the tip is within r of the
+    trajectory axis with sin(theta) < 0.2 (reference), or already past p_l inside the corridor
+    (within r + 2 mm of the axis); before that it is the axis point
+    ``approach`` above p_l (in C_free, so the approach never grazes the unsafe region); a tip
+    off the corridor and below that height first backs out along -z_G. Action:
     ``position_gain`` x the waypoint error in {D} (at most ``max_step`` m) and ``rotation_gain``
     x the rotation vector turning z_D onto z_G, in {D} (at most ``max_rotation`` rad), in
     action units.
@@ -253,11 +257,15 @@ def surgery_expert(
     z_d = r_gd[:, :, 2]
     lateral = p[:, :2].norm(dim=-1)
     sin_t = z_d[:, :2].norm(dim=-1)
-    inserting = ((lateral < radius) & (sin_t < 0.2) & (p[:, 2] < 0)) | (
-        (p[:, 2] > -skin_distance) & (lateral < radius + 0.002) & (p[:, 2] < 0)
+    inserting = ((lateral < radius) & (sin_t < 0.2)) | (
+        (p[:, 2] > -skin_distance) & (lateral < radius + 0.002)
     )
     waypoint = torch.zeros_like(p)
-    waypoint[:, 2] = torch.where(inserting, 0.0, -(skin_distance + approach))
+    waypoint[:, 2] = torch.where(inserting, -stop_short, -(skin_distance + approach))
+    # Off the corridor and not well above p_l's plane (only unsafe or data-collection starts):
+    # back out along -z_G first, then approach.
+    back_out = ~inserting & (lateral >= radius) & (p[:, 2] > -(skin_distance + approach / 2))
+    waypoint[:, :2] = torch.where(back_out[:, None], p[:, :2], waypoint[:, :2])
     err_d = (r_gd.transpose(-1, -2) @ (waypoint - p).unsqueeze(-1)).squeeze(-1)
     dp = position_gain * err_d
     n = dp.norm(dim=-1, keepdim=True)

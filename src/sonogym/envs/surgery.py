@@ -362,7 +362,7 @@ class SurgeryEnv(TorchVectorEnv):
         redraws = torch.zeros(k, dtype=torch.long, device=self.device)
         if cfg.require_free_start:
             for _ in range(_START_REDRAWS):
-                pos, rot = sc.drill_fk(env_ids, q)
+                pos, _ = sc.drill_fk(env_ids, q)
                 bad = self._regions_at(env_ids, pos) != FREE
                 if not bool(bad.any()):
                     break

@@ -19,13 +19,28 @@ import numpy as np
 import torch
 
 
+def _first_image(obs) -> torch.Tensor:
+    """Env 0's 2-D image of an image observation (N, 1, H, W)."""
+    return obs[0, 0]
+
+
+def _probe_position(env, info) -> np.ndarray:
+    return env.scene.probe_pos[0].cpu().numpy().copy()
+
+
 @dataclass(frozen=True)
 class DemoTask:
-    """How to demo one task: its env id, its expert, and how to draw env 0's top-down view."""
+    """How to demo one task: its env id, its expert, its metrics, and how to draw env 0.
+
+    ``image(obs)`` picks env 0's 2-D image for the frame sheet; ``track(env, info)`` the point
+    whose path the video draws; ``frame(env, image, path)`` one RGB video frame."""
 
     env_id: str
     expert: Callable[[object, dict], torch.Tensor]
     metrics: tuple[str, ...]
+    image: Callable[[object], torch.Tensor] = _first_image
+    track: Callable[[object, dict], np.ndarray] = _probe_position
+    frame: Callable[[object, torch.Tensor, np.ndarray], np.ndarray] | None = None
 
 
 def _navigation_expert(env, info):
@@ -34,9 +49,46 @@ def _navigation_expert(env, info):
     return navigation_expert(info["state"], action_scale=env.cfg.action_scale)
 
 
+def _surgery_expert(env, info):
+    from sonogym.envs.surgery import surgery_expert
+
+    return surgery_expert(
+        info["state"],
+        info["radius"],
+        skin_distance=env.cfg.skin_distance,
+        action_scale=env.cfg.action_scale,
+    )
+
+
+def _surgery_image(obs) -> torch.Tensor:
+    """Env 0's volume, its elevation slices side by side."""
+    from sonogym.envs.surgery import volume_strip
+
+    return volume_strip(obs["image"][0])
+
+
+def _drill_tip_in_goal(env, info) -> np.ndarray:
+    return info["state"][0, :3].cpu().numpy().copy()
+
+
+def _surgery_frame(env, image: torch.Tensor, path: np.ndarray) -> np.ndarray:
+    from sonogym.envs.surgery import surgery_frame
+
+    frame = surgery_frame(env, path, image, zoom=4)
+    return np.pad(frame, ((0, (-frame.shape[0]) % 16), (0, (-frame.shape[1]) % 16), (0, 0)))
+
+
 DEMO_TASKS: dict[str, DemoTask] = {
     "navigation": DemoTask(
         "SonoGym/Navigation-v0", _navigation_expert, ("position_error_mm", "angle_error_deg")
+    ),
+    "surgery": DemoTask(
+        "SonoGym/Surgery-v0",
+        _surgery_expert,
+        ("insertion_error_mm", "side_error_mm", "rotation_error_deg", "safe_ratio"),
+        image=_surgery_image,
+        track=_drill_tip_in_goal,
+        frame=_surgery_frame,
     ),
 }
 
@@ -69,13 +121,11 @@ def run_demo(
             obs, _, _, _, info = env.step(action)
             if "final_info" in info:
                 final = info["final_info"]
-                img = info["final_obs"][0, 0]
+                img = task.image(info["final_obs"])
             else:
-                img = obs[0, 0]
-            paths.append(
-                env.scene.probe_pos[0].cpu().numpy().copy() if final is None else paths[-1]
-            )
-            frame = _frame(env, img, np.array(paths))
+                img = task.image(obs)
+            paths.append(task.track(env, info) if final is None else paths[-1])
+            frame = (task.frame or _frame)(env, img, np.array(paths))
             frames.append(frame)
             if t % max(1, env.episode_length // 8) == 0 or final is not None:
                 sheet.append((t + 1, img.cpu().numpy()))

@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 import torch
-from us_synthetic import BONE, HU, block_patient, straight_down
+from us_synthetic import BONE, HU, block_patient, random_poses, straight_down
 
 from sonogym.anatomy.patient import Patient
+from sonogym.ultrasound import ProbeGeometry, Slicer
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
 
 OTHER_BONE = 27  # L5: a bone that is not the target (BONE = 28 = L4)
@@ -104,3 +105,21 @@ def test_same_generator_seed_same_reading(sensor):
     c = sensor.sense(pos, rot, pid, BONE, torch.Generator().manual_seed(6))
     assert torch.equal(a.valid, b.valid) and torch.equal(a.points, b.points)
     assert not torch.equal(a.valid, c.valid)
+
+
+def test_labels_match_the_slicer_on_the_same_pixel_grid(patient):
+    # two patients (the second shifted by 3 mm) to exercise the per-env patient lookup
+    shifted = Patient(patient.ct, patient.labels, patient.affine.copy(), name="shifted")
+    shifted.affine[0, 3] += 0.003
+    sensor = BoneSurfaceSensor([patient, shifted])
+    geo = ProbeGeometry(80, 50, 1, 1e-3, 1e-3, 1e-3)
+    slicer = Slicer([patient, shifted], geo, upsample=False)
+    pos, rot = random_poses(12, seed=2, max_angle=0.7)
+    pos[:4, 0] += 0.05  # partly outside the volume
+    pid = torch.arange(12) % 2
+    lab, origin, row_step, col_step = sensor.labels(pos, rot, pid)
+    s = slicer(pos, rot, pid)
+    assert (lab != s.labels[:, 0]).float().mean() < 1e-3  # exact ties may round either way
+    assert torch.allclose(origin, s.origin[:, 0]) and torch.allclose(row_step, s.row_step)
+    assert torch.allclose(col_step, s.col_step)
+    assert sensor.nbytes < slicer.nbytes / 2

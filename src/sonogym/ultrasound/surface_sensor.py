@@ -18,7 +18,11 @@ first remaining one per column (a dropped top edge exposes a deeper one), and wh
 vertebrae did not occlude the target (reference_implementation.md §5).
 
 Each point sits at its pixel's centre in the patient frame: origin + row * row_step +
-col * col_step (``Slices`` geometry), metres.
+col * col_step (the ``Slicer``'s pixel geometry), metres.
+
+Labels are sampled like the ``Slicer``'s nearest-label lookup (same pixel grid, same result
+up to exact ties), but from a label-only copy of each patient (1 byte per voxel instead of the
+slicer's 3, no CT interpolation): the sensor runs every step of every env.
 """
 
 from __future__ import annotations
@@ -26,12 +30,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from sonogym.anatomy.labels import BONE_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.ultrasound.probe import ProbeGeometry
-from sonogym.ultrasound.slicer import Slicer
+from sonogym.ultrasound.slicer import check_poses
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,12 +82,77 @@ class BoneSurfaceSensor:
             width_spacing=spacing,
             elevation_spacing=spacing,
         )
-        # Exact per-pixel nearest-label sampling (no block upsampling): 4000 px per env.
-        self.slicer = Slicer(patients, self.probe, device=device, upsample=False)
-        self.device = self.slicer.device
+        if isinstance(patients, Patient):
+            patients = [patients]
+        patients = list(patients)
+        if not patients or not all(isinstance(p, Patient) for p in patients):
+            raise TypeError("BoneSurfaceSensor needs one Patient or a non-empty sequence of them")
+        self.device = torch.device(device) if device is not None else patients[0].labels.device
+        labs, offs, dims, orgs, sps = [], [], [], [], []
+        off = 0
+        for p in patients:
+            dx, dy, dz = (d + 2 for d in p.shape)  # a one-voxel air border (label 0)
+            lab = torch.zeros((dx, dy, dz), dtype=torch.uint8)
+            lab[1:-1, 1:-1, 1:-1] = p.labels.to("cpu")
+            labs.append(lab.reshape(-1))
+            offs.append(off)
+            off += lab.numel()
+            dims.append([dx, dy, dz])
+            orgs.append(p.origin - p.spacing)  # padded voxel 0
+            sps.append(p.spacing)
+        if off >= 2**31:
+            raise ValueError(f"BoneSurfaceSensor: {off} voxels in all; at most 2**31 fit")
+        dev = self.device
+        dims_t = torch.tensor(dims, dtype=torch.int64)
+        self._lab = torch.cat(labs).to(dev)
+        self._offsets = torch.tensor(offs, dtype=torch.int32, device=dev)
+        self._dmax = (dims_t - 1).to(dev, torch.float32)  # (P, 3) largest index
+        ones = torch.ones(len(dims), dtype=torch.int64)
+        strides = torch.stack([dims_t[:, 1] * dims_t[:, 2], dims_t[:, 2], ones], 1)
+        self._strides = strides.to(dev, torch.int32)
+        self._origin = torch.tensor(np.array(orgs), dtype=torch.float64, device=dev)
+        self._spacing = torch.tensor(np.array(sps), dtype=torch.float64, device=dev)
         lut = torch.zeros(256, dtype=torch.bool)
         lut[sorted(BONE_IDS)] = True
-        self._bone = lut.to(self.device)
+        self._bone = lut.to(dev)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the sensor's label buffers."""
+        return self._lab.numel()
+
+    def labels(
+        self, pos: torch.Tensor, rot: torch.Tensor, patient_index: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Nearest labels on the sensor's image plane.
+
+        Returns labels (N, H, W) uint8 and the pixel geometry in {P} (float64, metres):
+        origin (N, 3) of pixel (0, 0), row_step (N, 3), col_step (N, 3)."""
+        check_poses(pos, rot)
+        pr, dev = self.probe, self.device
+        n = pos.shape[0]
+        pid = torch.as_tensor(patient_index, device=dev).long().reshape(-1)
+        if pid.shape[0] != n:
+            raise ValueError(f"patient_index must have shape ({n},), got {tuple(pid.shape)}")
+        if n and (int(pid.min()) < 0 or int(pid.max()) >= len(self._offsets)):
+            raise ValueError(f"patient_index out of range: the sensor holds {len(self._offsets)}")
+        pos = pos.to(dev, torch.float64)
+        rot = rot.to(dev, torch.float64)
+        xu, zu = rot[..., 0], rot[..., 2]
+        origin = pos - (pr.width_px - 1) / 2 * pr.width_spacing * xu
+        row_step, col_step = zu * pr.depth_spacing, xu * pr.width_spacing
+        sp = self._spacing[pid]
+        v0 = ((origin - self._origin[pid]) / sp).float()  # (N, 3) padded voxel coordinates
+        dr, dc = (row_step / sp).float(), (col_step / sp).float()
+        j = torch.arange(pr.depth_px, device=dev, dtype=torch.float32)
+        i = torch.arange(pr.width_px, device=dev, dtype=torch.float32)
+        idx = self._offsets[pid].view(n, 1, 1).expand(n, pr.depth_px, pr.width_px).clone()
+        for c in range(3):
+            v = (v0[:, c, None] + j * dr[:, c, None])[:, :, None] + (i * dc[:, c, None])[:, None]
+            v = torch.minimum(v.round_().clamp_(min=0), self._dmax[pid, c].view(n, 1, 1))
+            idx += v.to(torch.int32) * self._strides[pid, c].view(n, 1, 1)
+        lab = torch.index_select(self._lab, 0, idx.view(-1)).view(n, pr.depth_px, pr.width_px)
+        return lab, origin, row_step, col_step
 
     def sense(
         self,
@@ -109,8 +179,7 @@ class BoneSurfaceSensor:
         """
         if not 0.0 <= missing_rate <= 1.0:
             raise ValueError(f"missing_rate must be in [0, 1], got {missing_rate}")
-        s = self.slicer(pos, rot, patient_index)
-        lab = s.labels[:, 0]  # (N, H, W)
+        lab, origin, row_step, col_step = self.labels(pos, rot, patient_index)
         n, h, w = lab.shape
         bone = self._bone[lab.long()]  # (N, H, W)
         hit = bone.any(1)  # (N, W)
@@ -123,8 +192,8 @@ class BoneSurfaceSensor:
         valid = visible & (u.to(lab.device) >= missing_rate)
         col = torch.arange(w, device=lab.device, dtype=torch.float64)
         points = (
-            s.origin[:, 0, None, :]
-            + row.to(torch.float64)[..., None] * s.row_step[:, None, :]
-            + col[None, :, None] * s.col_step[:, None, :]
+            origin[:, None, :]
+            + row.to(torch.float64)[..., None] * row_step[:, None, :]
+            + col[None, :, None] * col_step[:, None, :]
         )
         return SensedSurface(points, valid, visible)

@@ -307,11 +307,24 @@ def test_bad_options_raise():
         _env(1, obs_mode="us")
     with pytest.raises(ValueError, match="missing_rate"):
         _env(1, missing_rate=1.2)
-    with pytest.raises(ValueError, match="L9"):
-        _env(1, target_vertebra="L9")
+    with pytest.raises(ValueError, match="target_vertebra"):
+        _env(1, target_vertebra="L9")  # not a vertebra
     with pytest.raises(TypeError, match="valid options"):
         _env(1, tilt=0.3)
     env = _env(2)
     env.reset(seed=0)
     with pytest.raises(ValueError, match="shape"):
         env.step(torch.zeros(2, 3))
+
+
+def test_demo_runs_the_heuristic_and_draws_the_reconstruction():
+    from sonogym.evaluation.demo import DEMO_TASKS
+
+    task = DEMO_TASKS["reconstruction"]
+    env = _env(2, missing_rate=0.0)
+    _, info = env.reset(seed=0)
+    for _ in range(3):
+        obs, _, _, _, info = env.step(task.expert(env, info))
+    img = task.image(obs)
+    assert img.shape == (200, 200) and 0 < float(img.max()) <= 1.0
+    assert env.render().shape == (200, 200, 3)

@@ -226,6 +226,10 @@ class ReconstructionEnv(TorchVectorEnv):
 
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         cfg = make_config(ReconstructionConfig, kwargs)
+        if cfg.target_vertebra not in VERTEBRA_IDS:
+            raise ValueError(
+                f"target_vertebra {cfg.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
+            )
         super().__init__(num_envs, cfg.device, cfg.episode_length)
         self.cfg = cfg
         self.scene = ProbeScene(
@@ -241,10 +245,6 @@ class ReconstructionEnv(TorchVectorEnv):
         dev, n, size = self.device, num_envs, cfg.volume_size
         pats = self.scene.patients
         pid = self.scene.patient_index
-        if cfg.target_vertebra not in VERTEBRA_IDS:
-            raise ValueError(
-                f"target_vertebra {cfg.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
-            )
         self.target_label = VERTEBRA_IDS[cfg.target_vertebra]
         self.sensor = BoneSurfaceSensor(
             pats, cfg.sensor_width_px, cfg.sensor_depth_px, cfg.sensor_spacing, device=dev

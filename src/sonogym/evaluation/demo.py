@@ -1,4 +1,5 @@
-"""``sonogym demo``: run every registered task's expert for one episode and write what it saw.
+"""``sonogym demo``: run every registered task's expert (or heuristic) for one episode and write
+what it saw.
 
 Outputs in the run folder: ``<task>_frames.png`` (a sheet of ultrasound frames along the way),
 ``<task>.mp4`` (env 0: the ultrasound image beside a top-down view of the back with the probe's
@@ -26,6 +27,8 @@ class DemoTask:
     env_id: str
     expert: Callable[[object, dict], torch.Tensor]
     metrics: tuple[str, ...]
+    #: env 0's frame (H, W) in [0, 1] from a batched observation (default: its first image).
+    image: Callable[[object], torch.Tensor] = lambda obs: obs[0, 0]
 
 
 def _navigation_expert(env, info):
@@ -34,9 +37,28 @@ def _navigation_expert(env, info):
     return navigation_expert(info["state"], action_scale=env.cfg.action_scale)
 
 
+def _reconstruction_heuristic(env, info):
+    from sonogym.envs.reconstruction import heuristic_raster
+
+    return heuristic_raster(env, info)
+
+
+def _reconstruction_image(obs) -> torch.Tensor:
+    """The reconstruction in the probe frame, projected over elevation: (depth, lateral),
+    upsampled x5 to 200 x 200 (bone surface near the image plane shows as bright points)."""
+    v = obs["reconstruction"][0].amax(1).T  # (z_U depth, x_U lateral)
+    return v.repeat_interleave(5, 0).repeat_interleave(5, 1)
+
+
 DEMO_TASKS: dict[str, DemoTask] = {
     "navigation": DemoTask(
         "SonoGym/Navigation-v0", _navigation_expert, ("position_error_mm", "angle_error_deg")
+    ),
+    "reconstruction": DemoTask(
+        "SonoGym/Reconstruction-v0",
+        _reconstruction_heuristic,
+        ("coverage", "total_rotation_deg", "trajectory_length_mm"),
+        _reconstruction_image,
     ),
 }
 
@@ -69,9 +91,9 @@ def run_demo(
             obs, _, _, _, info = env.step(action)
             if "final_info" in info:
                 final = info["final_info"]
-                img = info["final_obs"][0, 0]
+                img = task.image(info["final_obs"])
             else:
-                img = obs[0, 0]
+                img = task.image(obs)
             paths.append(
                 env.scene.probe_pos[0].cpu().numpy().copy() if final is None else paths[-1]
             )

@@ -11,6 +11,7 @@ import gymnasium as gym
 #: Registered task ids -> module that implements them.
 TASKS: dict[str, str] = {
     "SonoGym/Navigation-v0": "sonogym.envs.navigation",
+    "SonoGym/Reconstruction-v0": "sonogym.envs.reconstruction",
     "SonoGym/Surgery-v0": "sonogym.envs.surgery",
 }
 

@@ -1,4 +1,5 @@
-"""``sonogym demo``: run every registered task's expert for one episode and write what it saw.
+"""``sonogym demo``: run every registered task's expert (or heuristic) for one episode and write
+what it saw.
 
 Outputs in the run folder: ``<task>_frames.png`` (a sheet of ultrasound frames along the way),
 ``<task>.mp4`` (env 0: the ultrasound image beside a top-down view of the back with the probe's
@@ -78,9 +79,28 @@ def _surgery_frame(env, image: torch.Tensor, path: np.ndarray) -> np.ndarray:
     return np.pad(frame, ((0, (-frame.shape[0]) % 16), (0, (-frame.shape[1]) % 16), (0, 0)))
 
 
+def _reconstruction_heuristic(env, info):
+    from sonogym.envs.reconstruction import heuristic_raster
+
+    return heuristic_raster(env, info)
+
+
+def _reconstruction_image(obs) -> torch.Tensor:
+    """The reconstruction in the probe frame, projected over elevation: (depth, lateral),
+    upsampled x5 to 200 x 200 (bone surface near the image plane shows as bright points)."""
+    v = obs["reconstruction"][0].amax(1).T  # (z_U depth, x_U lateral)
+    return v.repeat_interleave(5, 0).repeat_interleave(5, 1)
+
+
 DEMO_TASKS: dict[str, DemoTask] = {
     "navigation": DemoTask(
         "SonoGym/Navigation-v0", _navigation_expert, ("position_error_mm", "angle_error_deg")
+    ),
+    "reconstruction": DemoTask(
+        "SonoGym/Reconstruction-v0",
+        _reconstruction_heuristic,
+        ("coverage", "total_rotation_deg", "trajectory_length_mm"),
+        image=_reconstruction_image,
     ),
     "surgery": DemoTask(
         "SonoGym/Surgery-v0",

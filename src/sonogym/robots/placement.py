@@ -39,11 +39,12 @@ All keep the reference's base heading (x_base = -z_P, y_base = +x_P, z_base up).
   skin within +-80 mm in x and +-100 mm in z around the vertebra, beam along the normal, yaw
   in [1.5, 3.5] rad; with tilt +-0.25 rad over the same area, and +-0.4 rad within +-40 mm in x
   and +-50 mm in z (the reconstruction task's region around its vertebra), at least 0.05 rad
-  inside the limits (tested). Tilting 0.4 rad at the workspace's x edges toward or away from
-  the robot is out of reach for 4-5 % of such poses (missed by < 1 mm and reported
-  unreachable): with the probe face 0.256 m from the wrist centre (0.126 m flange + 0.13 m
-  probe), the elbow (A4, +-120 deg) and wrist (A6, +-120 deg) cannot span those wrist
-  positions and directions from any base beside the bed that also keeps A6 away from zero.
+  inside the limits (tested). Some poses tilted 0.4 rad toward or away from the robot at the
+  workspace's x edges are out of reach (about 4 % of a test set with half its poses on the
+  edges; each missed by < 1 mm and reported unreachable): with the probe face 0.256 m from
+  the wrist centre (0.126 m flange + 0.13 m probe) the elbow (A4, +-120 deg) and the wrist
+  (A6, +-120 deg) must span a wide range of wrist positions and directions, and in a search
+  over base positions beside the bed no base that kept A6 away from zero reached them all.
 * ``OVERHEAD_PROBE_BASE`` (KUKA): 0.45 m to the patient's left with the base 0.25 m *above* the
   skin (a pedestal; upper arm reaching over the patient, forearm pointing down). It reaches the
   full navigation workspace with tilt +-0.4 rad everywhere (joints >= 0.1 rad inside their
@@ -56,7 +57,8 @@ All keep the reference's base heading (x_base = -z_P, y_base = +x_P, z_base up).
 * Surgery drill arm (KUKA): 0.70 m to the patient's right, 0.30 m below the skin (reference:
   about 0.48 m right, 0.54 m below, from which drill-tip poses along a pedicle trajectory
   from 170 mm above the target down to the target keep the elbow or wrist at a limit); the tip
-  then reaches the whole drilling corridor with joint margins of about 0.4 rad (tested).
+  then reaches the whole drilling corridor with every joint about 0.3 rad inside its limits
+  (tested).
 """
 
 from __future__ import annotations

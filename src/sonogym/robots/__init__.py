@@ -11,6 +11,7 @@ from sonogym.robots.arm import REFERENCE_VELOCITY_LIMITS, Arm, ArmConfig, IKResu
 from sonogym.robots.description import ARM_MODELS, URDF_DIR, ArmModel, arm_model, assemble_urdf
 from sonogym.robots.placement import (
     NAVIGATION_PROBE_BASE,
+    OVERHEAD_PROBE_BASE,
     SURGERY_DRILL_BASE,
     SURGERY_PROBE_BASE,
     BasePlacement,
@@ -23,6 +24,7 @@ __all__ = [
     "ARM_MODELS",
     "DRILL_TOOL",
     "NAVIGATION_PROBE_BASE",
+    "OVERHEAD_PROBE_BASE",
     "PROBE_TOOL",
     "REFERENCE_VELOCITY_LIMITS",
     "SURGERY_DRILL_BASE",

@@ -370,7 +370,10 @@ class Arm:
                 err0 = err
             dq = self._dls(jac, err, torch.ones_like(q))
             pinned = ((q <= self.q_min + slack) & (dq < 0)) | ((q >= self.q_max - slack) & (dq > 0))
-            dq = self._dls(jac, err, (~pinned).to(q.dtype))
+            # Re-solve without the pinned joints (skipped on CPU when none is; on CUDA always,
+            # to avoid a host sync).
+            if q.device.type != "cpu" or bool(pinned.any()):
+                dq = self._dls(jac, err, (~pinned).to(q.dtype))
             room = torch.where(dq > 0, hi - q, q - lo).clamp_min(0)
             ratio = torch.where(dq != 0, room / dq.abs().clamp_min(1e-30), torch.inf)
             scale = ratio.amin(-1, keepdim=True).clamp(max=1)

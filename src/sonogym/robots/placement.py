@@ -30,23 +30,35 @@ target vertebra's centre (x_v, h(x_v, z_v), z_v), so it follows each patient's a
 an initial joint configuration that suits it (the arm settles from there to its first target).
 All keep the reference's base heading (x_base = -z_P, y_base = +x_P, z_base up).
 
-* Navigation / reconstruction probe arm (KUKA): 0.45 m toward the patient's left (-x_P), base
-  0.25 m *above* the skin, level with the vertebra: a pedestal beside the bed, upper arm
-  reaching over the patient, forearm pointing down. The reference's offsets (about 0.52 m left,
-  0.44 m below the skin) reach the navigation workspace only with the beam along the normal:
-  with the probe 0.256 m ahead of the wrist centre (0.126 m flange + 0.13 m probe), a 0.4 rad
-  tilt at the workspace's far edge needs A6 beyond its 120 deg limit, and the elbow (A4,
-  +-120 deg) cannot span the wrist distances of the whole tilted workspace from a base below
-  the back. From this base the whole workspace (probe face on the skin within +-80 mm in x and
-  +-100 mm in z around the vertebra, yaw in [1.5, 3.5] rad, tilt +-0.4 rad) is reached from the
-  initial joints with every joint at least 0.1 rad inside its limits (tested).
+* Navigation / reconstruction probe arm (KUKA), ``NAVIGATION_PROBE_BASE``: 0.42 m toward the
+  patient's left (-x_P), 0.50 m below the skin, level with the vertebra; close to the
+  reference's offsets (about 0.52 m left, 0.44 m below), with the upper arm nearly vertical,
+  the forearm sloping down over the patient and the wrist (A6 about 1.7 rad) far from its
+  singularity, so that tracking is smooth. From its initial joints it reaches, with every
+  joint at least 0.2 rad inside its limits, the whole navigation workspace: probe face on the
+  skin within +-80 mm in x and +-100 mm in z around the vertebra, beam along the normal, yaw
+  in [1.5, 3.5] rad; with tilt +-0.25 rad over the same area, and +-0.4 rad within +-40 mm in x
+  and +-50 mm in z (the reconstruction task's region around its vertebra), at least 0.05 rad
+  inside the limits (tested). Some poses tilted 0.4 rad toward or away from the robot at the
+  workspace's x edges are out of reach (about 4 % of a test set with half its poses on the
+  edges; each missed by < 1 mm and reported unreachable): with the probe face 0.256 m from
+  the wrist centre (0.126 m flange + 0.13 m probe) the elbow (A4, +-120 deg) and the wrist
+  (A6, +-120 deg) must span a wide range of wrist positions and directions, and in a search
+  over base positions beside the bed no base that kept A6 away from zero reached them all.
+* ``OVERHEAD_PROBE_BASE`` (KUKA): 0.45 m to the patient's left with the base 0.25 m *above* the
+  skin (a pedestal; upper arm reaching over the patient, forearm pointing down). It reaches the
+  full navigation workspace with tilt +-0.4 rad everywhere (joints >= 0.1 rad inside their
+  limits, tested), but its wrist works near A6 = 0, where holding the probe's orientation
+  needs fast A5/A7/A6 motion: at 3 mm per control step (0.18 m/s) it lags by up to about 8 mm
+  where the default placement lags by < 1 mm.
 * Surgery probe arm (FR3): the reference's offsets, 0.52 m to the patient's left and 0.64 m
   below the skin; the FR3 reaches the surgery probe poses (probe 20-55 mm left of the midline,
   tilted 0.25-0.55 rad toward it) with wide joint margins.
 * Surgery drill arm (KUKA): 0.70 m to the patient's right, 0.30 m below the skin (reference:
   about 0.48 m right, 0.54 m below, from which drill-tip poses along a pedicle trajectory
   from 170 mm above the target down to the target keep the elbow or wrist at a limit); the tip
-  then reaches the whole drilling corridor with joint margins of about 0.4 rad (tested).
+  then reaches the whole drilling corridor with every joint about 0.3 rad inside its limits
+  (tested).
 """
 
 from __future__ import annotations
@@ -131,6 +143,11 @@ class BasePlacement:
 #: KUKA probe arm of the navigation and reconstruction tasks (initial probe pose: about 60 mm
 #: above the anchor, beam along the normal, yaw 2.5 rad).
 NAVIGATION_PROBE_BASE = BasePlacement(
+    offset=(-0.42, 0.50, 0.0), init_joints=(1.57, 0.05, 0.0, -1.43, 0.0, 1.66, 0.64)
+)
+#: KUKA probe arm on a pedestal above the skin: reaches tilts of +-0.4 rad over the whole
+#: navigation workspace, at the cost of slower tracking (see the module docstring).
+OVERHEAD_PROBE_BASE = BasePlacement(
     offset=(-0.45, -0.25, 0.0), init_joints=(1.59, 1.32, -0.03, -1.71, 0.24, 0.11, 0.42)
 )
 #: FR3 probe arm of the surgery task (initial probe pose: about 50 mm above the skin 40 mm left

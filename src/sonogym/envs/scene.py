@@ -83,7 +83,8 @@ class ProbeScene:
         c = self.target_centres.double()
         anchor = self.skin.point(c[:, 0], c[:, 2], self.patient_index)
         base = NAVIGATION_PROBE_BASE.base_pose(anchor)
-        self.arm = Arm(ArmConfig(model=model), base_pose=base, device=self.device)
+        cfg = ArmConfig(model=model, init_joints=NAVIGATION_PROBE_BASE.init_joints)
+        self.arm = Arm(cfg, base_pose=base, device=self.device)
         self.controller = SurfaceController(self.skin, self.arm)
         self.q = self.arm.default_joints(self.num_envs)
 

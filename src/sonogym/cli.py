@@ -93,6 +93,20 @@ def image(
         typer.echo(f"wrote {path}")
 
 
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="Folder for frames, videos and metrics.")] = Path(
+        "runs/demo"
+    ),
+    envs: Annotated[int, typer.Option(help="Envs per task.")] = 4,
+    seed: Annotated[int, typer.Option(help="Episode seed.")] = 0,
+) -> None:
+    """Run every task's expert on the default phantom; write frames, a video and metrics."""
+    from sonogym.evaluation.demo import run_demo
+
+    run_demo(out, num_envs=envs, seed=seed, log=typer.echo)
+
+
 def main() -> None:
     app()
 

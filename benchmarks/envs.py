@@ -1,0 +1,73 @@
+"""Env-steps per second with random actions (images included), CPU and CUDA when present.
+
+    python benchmarks/envs.py [--envs 16 128] [--steps 50] [--device cpu]
+
+Prints one table. Budget (DESIGN.md §7): >= 500 env-steps/s for 128 navigation envs on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import gymnasium as gym
+import torch
+
+import sonogym  # noqa: F401
+
+
+def bench(env_id: str, n: int, steps: int, device: str, **kw) -> dict:
+    env = gym.make_vec(env_id, num_envs=n, device=device, **kw)
+    env.reset(seed=0)
+    g = torch.Generator().manual_seed(0)
+    low = torch.as_tensor(env.single_action_space.low)
+    high = torch.as_tensor(env.single_action_space.high)
+
+    def act():
+        return (low + (high - low) * torch.rand(n, low.shape[0], generator=g)).to(device)
+
+    for _ in range(3):
+        env.step(act())
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(act())
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    dt = time.perf_counter() - t0
+    return {"ms/step": 1e3 * dt / steps, "env-steps/s": n * steps / dt}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--envs", type=int, nargs="+", default=[16, 128])
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--device", nargs="+", default=None)
+    ap.add_argument("--simulator", default="physical")
+    args = ap.parse_args()
+    devices = args.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    rows = []
+    for device in devices:
+        for robot in ("kuka_med14", None):
+            for n in args.envs:
+                r = bench(
+                    "SonoGym/Navigation-v0",
+                    n,
+                    args.steps,
+                    device,
+                    simulator=args.simulator,
+                    robot=robot,
+                )
+                rows.append((device, "navigation", str(robot), n, r["ms/step"], r["env-steps/s"]))
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, simulator {args.simulator}"
+    )
+    print("| device | task | robot | envs | ms/step | env-steps/s |")
+    print("|---|---|---|---|---|---|")
+    for d, t, rb, n, ms, sps in rows:
+        print(f"| {d} | {t} | {rb} | {n} | {ms:.1f} | {sps:.0f} |")
+
+
+if __name__ == "__main__":
+    main()

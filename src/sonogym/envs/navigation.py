@@ -1,0 +1,246 @@
+"""Task 1, ultrasound navigation: bring the probe to the transverse view above L4.
+
+**Description.** A probe held on the patient's back by a robot arm starts at a random pose and
+must reach the goal frame {G}: the probe pose on the skin above the target vertebra's body
+centroid with a transverse image plane (yaw alpha_G = pi). The arm keeps the probe on the skin
+with its beam along the inward normal; the agent plans the 3 tangential DoF.
+
+**Observations.** ``obs_mode="us"``: the ultrasound image, (1, 200, 150) float32 in [0, 1] (depth
+rows from the probe face, lateral columns). ``"ct"``: the CT slice mapped from [-1000, 2000] HU
+to [0, 1]. ``"labels"``: the label slice, uint8 ids. ``"state"``: the privileged state (6,).
+
+**Actions.** (dx, dy, dalpha) in {U}, unitless; scaled by ``action_scale`` (3 mm, 3 mm, 0.1 rad)
+and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.
+dx moves along x_U, dy along y_U (both on the skin), dalpha rotates about the normal. The
+surface command (x, z, alpha) stays within ``workspace_half_extent`` of {G} and alpha within
+``yaw_range`` (clamped, documented).
+
+**Reward.** r_t = w1 (||p_t|| - ||p_t+1||) + ||q_t|| - ||q_t+1||, with p (mm) and q (axis-angle,
+rad) the pose of {U} in {G} before and after the transition caused by a_t; w1 = 0.045 per mm.
+
+**Randomizations.** Start (x, z) uniform in a 130 x 130 mm square centred on {G}, alpha uniform
+in [1.5, 3.5] rad; envs spread over the configured patients (env i -> patient i % P).
+
+**Termination.** None; truncation after ``episode_length`` = 300 control steps.
+
+**Metrics** (``info["final_info"]`` when an episode ends): ``position_error_mm`` = frontal-plane
+(x, z) distance of the reached probe from {G}; ``angle_error_deg`` = |wrap(alpha - alpha_G)|;
+``return``.
+
+``info`` every step: ``state`` (N, 6) = (p in m, q in rad) of {U} in {G}; ``command`` (N, 3);
+``reachable`` (N,) bool from the arm; ``cost`` (N,) zeros (no safety constraint in this task).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.scene import ProbeScene
+from sonogym.geometry import axis_angle_from_matrix, wrap_angle
+
+OBS_MODES = ("us", "ct", "labels", "state")
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    """Navigation task settings (paper defaults). Every field is a ``make_vec`` keyword."""
+
+    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
+    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
+    simulator: str = "physical"  # "physical" | "sonogym"
+    obs_mode: str = "us"  # "us" | "ct" | "labels" | "state"
+    device: str = "cpu"
+    episode_length: int = 300  # control steps (paper)
+    robot: str | None = "kuka_med14"  # probe arm; None: the probe sits exactly at the command
+    target_vertebra: str = "L4"
+    goal_yaw: float = math.pi  # rad, transverse image plane
+    start_half_extent: float = 0.065  # m: start (x, z) uniform in +-this around {G}
+    start_yaw: tuple[float, float] = (1.5, 3.5)  # rad
+    workspace_half_extent: float = 0.09  # m: the command is clamped to +-this around {G}
+    yaw_range: tuple[float, float] = (math.pi - 2.5, math.pi + 2.5)  # rad, command clamp
+    action_scale: tuple[float, float, float] = (0.003, 0.003, 0.1)  # m, m, rad per unit
+    action_limit: tuple[float, float, float] = (0.006, 0.006, 0.2)  # m, m, rad per step
+    w1: float = 0.045  # reward per mm of position progress (paper)
+
+    def __post_init__(self) -> None:
+        if self.obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
+        if self.episode_length < 1:
+            raise ValueError("episode_length must be >= 1")
+        if isinstance(self.patients, int | str):
+            object.__setattr__(self, "patients", (self.patients,))
+        object.__setattr__(self, "patients", tuple(self.patients))
+
+
+def navigation_reward(
+    p_before: torch.Tensor,
+    q_before: torch.Tensor,
+    p_after: torch.Tensor,
+    q_after: torch.Tensor,
+    w1: float,
+) -> torch.Tensor:
+    """Paper's reward: w1 (||p_t|| - ||p_t+1||) + ||q_t|| - ||q_t+1||; p in metres (converted to
+    mm here, w1 is per mm), q axis-angle in rad. Shapes (N, 3) -> (N,)."""
+    dp = (p_before.norm(dim=-1) - p_after.norm(dim=-1)) * 1e3
+    return w1 * dp + q_before.norm(dim=-1) - q_after.norm(dim=-1)
+
+
+def relative_pose(
+    goal_pos: torch.Tensor, goal_rot: torch.Tensor, pos: torch.Tensor, rot: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pose of {U} in {G}: position (N, 3) and axis-angle (N, 3)."""
+    rg_t = goal_rot.transpose(-1, -2)
+    p = (rg_t @ (pos - goal_pos).unsqueeze(-1)).squeeze(-1)
+    return p, axis_angle_from_matrix(rg_t @ rot)
+
+
+def navigation_expert(
+    state: torch.Tensor,
+    gain: float = 0.2,
+    action_scale: tuple[float, float, float] = (0.003, 0.003, 0.1),
+    action_bound: float = 2.0,
+) -> torch.Tensor:
+    """Paper's expert a* = rho1 [p.e_x, p.e_y, q.e_z] from the true state.
+
+    ``state`` (N, 6) is the pose of {U} in {G} (``info["state"]``). The goal seen from the probe
+    is the inverse pose: position -R_GU^T p and rotation -q; its x_U, y_U components and the
+    rotation about z_U, in action units, times ``gain`` (rho1 < 1), clipped to the action box.
+    """
+    from sonogym.geometry import matrix_from_axis_angle
+
+    p, q = state[:, :3], state[:, 3:]
+    r_gu = matrix_from_axis_angle(q)
+    goal_in_u = -(r_gu.transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1)
+    scale = torch.tensor(action_scale, dtype=state.dtype, device=state.device)
+    err = torch.stack([goal_in_u[:, 0], goal_in_u[:, 1], q[:, 2]], -1)
+    return (gain * err / scale).clamp(-action_bound, action_bound).float()
+
+
+class NavigationEnv(TorchVectorEnv):
+    """``SonoGym/Navigation-v0`` as a batched env; see the module docstring."""
+
+    def __init__(self, num_envs: int = 1, **kwargs) -> None:
+        cfg = make_config(NavigationConfig, kwargs)
+        super().__init__(num_envs, cfg.device, cfg.episode_length)
+        self.cfg = cfg
+        self.scene = ProbeScene(
+            cfg.patients,
+            num_envs,
+            spacing=cfg.phantom_spacing,
+            simulator=cfg.simulator,
+            robot=cfg.robot,
+            target_vertebra=cfg.target_vertebra,
+            device=self.device,
+            render=cfg.obs_mode != "state",
+        )
+        n = num_envs
+        dt = torch.float32
+        # Goal command per env: above the target vertebra's body centroid, transverse.
+        centres = self.scene.target_centres  # (N, 3)
+        self.goal_cmd = torch.stack(
+            [centres[:, 0], centres[:, 2], torch.full((n,), cfg.goal_yaw, device=self.device)], -1
+        )
+        self.goal_pos, self.goal_rot = self.scene.surface_pose(self.goal_cmd)
+        self.command = self.goal_cmd.clone()
+        self.action_scale = torch.tensor(cfg.action_scale, dtype=dt, device=self.device)
+        self.action_limit = torch.tensor(cfg.action_limit, dtype=dt, device=self.device)
+        bound = float(
+            max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
+        )
+        self.action_bound = bound
+        obs_space = {
+            "us": spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32),
+            "ct": spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32),
+            "labels": spaces.Box(0, 255, (1, *self.scene.image_shape), np.uint8),
+            "state": spaces.Box(-np.inf, np.inf, (6,), np.float32),
+        }[cfg.obs_mode]
+        self._set_spaces(obs_space, spaces.Box(-bound, bound, (3,), np.float32))
+        self._state = torch.zeros(n, 6, device=self.device)
+        self._prev_state = torch.zeros(n, 6, device=self.device)
+
+    # ------------------------------------------------------------------ hooks
+    def _reset_idx(self, env_ids: torch.Tensor) -> None:
+        cfg, k = self.cfg, len(env_ids)
+        h = cfg.start_half_extent
+        cmd = self.goal_cmd[env_ids].clone()
+        cmd[:, 0] += self.uniform(-h, h, k).float()
+        cmd[:, 1] += self.uniform(-h, h, k).float()
+        cmd[:, 2] = self.uniform(cfg.start_yaw[0], cfg.start_yaw[1], k).float()
+        self.command[env_ids] = cmd
+        self.scene.reset(env_ids, cmd)
+        self._state[env_ids] = self._measure(env_ids)
+
+    def _apply_action(self, actions: torch.Tensor) -> None:
+        cfg = self.cfg
+        delta = (actions * self.action_scale).clamp(-self.action_limit, self.action_limit)
+        rot = self.scene.probe_rot
+        # Tangential motion along x_U and y_U, restricted to the frontal (x, z) plane.
+        dx = delta[:, 0] * rot[:, 0, 0] + delta[:, 1] * rot[:, 0, 1]
+        dz = delta[:, 0] * rot[:, 2, 0] + delta[:, 1] * rot[:, 2, 1]
+        w = cfg.workspace_half_extent
+        cmd = self.command
+        cmd[:, 0] = torch.minimum(
+            torch.maximum(cmd[:, 0] + dx, self.goal_cmd[:, 0] - w), self.goal_cmd[:, 0] + w
+        )
+        cmd[:, 1] = torch.minimum(
+            torch.maximum(cmd[:, 1] + dz, self.goal_cmd[:, 1] - w), self.goal_cmd[:, 1] + w
+        )
+        cmd[:, 2] = (cmd[:, 2] + delta[:, 2]).clamp(*cfg.yaw_range)
+        self.scene.step(cmd)
+        self._prev_state = self._state.clone()
+        self._state = self._measure(None)
+
+    def _measure(self, env_ids: torch.Tensor | None) -> torch.Tensor:
+        sl = slice(None) if env_ids is None else env_ids
+        p, q = relative_pose(
+            self.goal_pos[sl], self.goal_rot[sl], self.scene.probe_pos[sl], self.scene.probe_rot[sl]
+        )
+        return torch.cat([p, q], -1).float()
+
+    def _get_rewards(self) -> torch.Tensor:
+        a, b = self._prev_state, self._state
+        return navigation_reward(a[:, :3], a[:, 3:], b[:, :3], b[:, 3:], self.cfg.w1)
+
+    def _get_observations(self, env_ids: torch.Tensor | None):
+        mode = self.cfg.obs_mode
+        if mode == "state":
+            return self._state.clone() if env_ids is None else self._state[env_ids].clone()
+        return self.scene.observe(mode, env_ids)
+
+    def _get_info(self) -> dict:
+        return {
+            "state": self._state.clone(),
+            "command": self.command.clone(),
+            "reachable": self.scene.reachable.clone(),
+            "cost": torch.zeros(self.num_envs, device=self.device),
+        }
+
+    def errors(self, env_ids: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frontal-plane position error (mm) and |wrap(alpha - alpha_G)| (deg) of the reached
+        probe poses."""
+        sl = slice(None) if env_ids is None else env_ids
+        x, z, yaw, _ = self.scene.measured_command(sl)
+        g = self.goal_cmd[sl]
+        pos = torch.stack([x - g[:, 0], z - g[:, 1]], -1).norm(dim=-1) * 1e3
+        ang = wrap_angle(yaw - g[:, 2]).abs() * 180 / math.pi
+        return pos, ang
+
+    def _episode_metrics(self, env_ids: torch.Tensor) -> dict[str, torch.Tensor]:
+        pos, ang = self.errors(env_ids)
+        return {"position_error_mm": pos, "angle_error_deg": ang}
+
+    def _render_frame(self) -> np.ndarray:
+        img = self.scene.observe("us", torch.zeros(1, dtype=torch.long, device=self.device))
+        g = (img[0, 0].clamp(0, 1) * 255).to(torch.uint8).cpu().numpy()
+        return np.repeat(g[..., None], 3, -1)
+
+
+def make_single(**kwargs) -> SingleEnv:
+    """``gymnasium.make("SonoGym/Navigation-v0")``: one env with NumPy I/O."""
+    return SingleEnv(NavigationEnv, **kwargs)

@@ -1,0 +1,38 @@
+"""Turn an env's ``patients`` option (phantom seeds and/or TotalSegmentator folders) into
+Patients, shared between envs of one process."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import lru_cache
+from pathlib import Path
+
+from sonogym.anatomy import Patient, PhantomParams, load_phantom, load_totalsegmentator
+
+PatientSpec = int | str | Path
+
+
+@lru_cache(maxsize=16)
+def _load(spec: int | str, spacing: float) -> Patient:
+    if isinstance(spec, int):
+        return load_phantom(spec, PhantomParams(spacing=spacing))
+    return load_totalsegmentator(spec, spacing=spacing, target="L4")
+
+
+def resolve_patients(specs: Sequence[PatientSpec] | PatientSpec, spacing: float) -> list[Patient]:
+    """Patients for a list of phantom seeds (int) and/or folders (str or Path).
+
+    Phantoms come from the on-disk cache (built once); loaded patients are shared in-process.
+    """
+    if isinstance(specs, int | str | Path):
+        specs = [specs]
+    if len(specs) == 0:
+        raise ValueError("patients must name at least one phantom seed or patient folder")
+    out = []
+    for s in specs:
+        if isinstance(s, bool) or not isinstance(s, int | str | Path):
+            raise TypeError(
+                f"patient {s!r}: use an int phantom seed or a TotalSegmentator folder path"
+            )
+        out.append(_load(s if isinstance(s, int) else str(Path(s).resolve()), float(spacing)))
+    return out

@@ -1,0 +1,542 @@
+"""Task 3, ultrasound-guided pedicle drilling: drill along the planned L4 pedicle trajectory.
+
+**Description.** A Franka FR3 holds a 3-D ultrasound probe still on the patient's back, 30 mm
+from the target vertebra's midline on the side opposite the drilled pedicle, its image plane
+sagittal-ish (x_U along the spine) and tilted 0.4 rad toward the midline. A KUKA LBR Med 14
+holds a drill whose tip frame {D} (z_D along the drill axis) the agent moves. The goal frame {G}
+sits at the target point of the planned pedicle trajectory (``side`` = right by default), z_G
+along the trajectory from entry to target. In {G}:
+
+* C_drill = {sqrt(p_x^2 + p_y^2) <= d/2, -l <= p_z <= 0}, d = 2 (r + 2 mm), r the planned
+  corridor radius;
+* C_free = {p_z <= -l} (points with p_z = -l count as C_free);
+* everything else is unsafe; l = 50 mm, p_l = [0, 0, -l] lies on the trajectory 50 mm before
+  the target (DESIGN.md §5).
+
+Probe and drill poses are those the arms reached (forward kinematics after velocity-limited IK).
+
+**Observations.** ``obs_mode="us"`` (default): Dict ``image`` (5, 50, 37) float32 in [0, 1], the
+3-D volume (elevation E, depth H, lateral W) at 2 x 2 x 10 mm, and ``pose`` (7,) float32, the
+drill tip pose in {U}: position (m) + quaternion (w, x, y, z). ``"ct"``: the image is the CT
+volume windowed from [-1000, 2000] HU to [0, 1]; ``"labels"``: the label volume, uint8.
+``"state"``: the privileged state (6,) = tip position in {G} (m) + rotation vector of {D} in {G}
+(rad). The probe is still and the drill is not imaged, so the volume changes only at resets.
+
+**Actions.** (dp, dw) in {D}, unitless, (6,): scaled by ``action_scale`` (0.1 m, 0.1 m, 0.1 m,
+1 rad, 1 rad, 1 rad) and clipped per component to ``action_limit`` (30 mm, 30 mm, 30 mm,
+0.1 rad x 3), the documented clipping. The drill-tip target is the reached tip pose composed
+with the body-frame increment: T_target = T_tip (dp, exp(dw)); the KUKA takes one
+velocity-limited IK step toward it, so a command faster than the joints allow leaves a tracking
+error (``info["tracking_error"]``).
+
+**Reward.** The paper's piecewise reward, weights w4 = 30 per m, w5 = 5 per rad, w6 = 300 per
+m (the reference implementation's surgery reward works in metres), written as a potential
+of the last safe tip pose so that no loop through the unsafe region earns reward:
+
+    Phi(p, theta, m) = -w5 theta + { -w4 |p - p_l| + w6 m          if p in C_free
+                                   { -w6 |(p_x, p_y, m)|            if p in C_drill
+    r_t = Phi(p_bar_t+1, theta_bar_t+1, m_t+1) - Phi(p_bar_t, theta_bar_t, m_t)
+
+theta is the angle between the drill axis z_D and z_G (the drill is symmetric about its axis);
+m (<= 0) is the deepest p_z reached inside C_drill so far (-l at the start): the guard, so
+insertion progress pays only when the deepest safe point improves; p_bar is the last safe tip
+pose (the current one when safe). Within C_free this is the paper's
+w4 (|p_t - p_l| - |p_t+1 - p_l|) + w5 (theta_t - theta_t+1), within C_drill the paper's
+w6 (|p_t| - |p_t+1|) + w5 (...) with p_z replaced by m; moves inside the unsafe region pay 0
+(the paper's "0 otherwise"), and the step back into a safe region pays the potential
+difference to where the tip left safety, so every closed path's return is the (one-off) gain
+of m. Before the tip has been safe once (possible only with ``require_free_start=False``)
+rewards are 0. Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
+
+**Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
+by IK. Drill: nominal joints (solved once per patient: tip 90 mm above p_l on the trajectory's
+continuation, axis along z_G) + uniform joint noise +-[0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1] rad
+(the paper's; ``DATA_COLLECTION_JOINT_NOISE`` gives the paper's wider data-collection ranges);
+draws whose tip is not in C_free are redrawn (up to 20 times, then the nominal start). Envs
+spread over the configured patients (env i -> patient i % P).
+
+**Termination.** None; truncation after ``episode_length`` = 600 control steps.
+
+**Metrics** (``info["final_info"]``): ``insertion_error_mm`` = |p_z| of the final tip;
+``side_error_mm`` = sqrt(p_x^2 + p_y^2); ``rotation_error_deg`` = theta; ``safe_ratio`` =
+fraction of the states p_1 ... p_T in C_free or C_drill; ``return``.
+
+``info`` every step: ``state`` (N, 6); ``cost`` (N,); ``region`` (N,) int64 (0 C_free,
+1 C_drill, 2 unsafe); ``safe`` (N,) bool; ``radius`` (N,) planned corridor radius r (m);
+``max_depth`` (N,) m; ``tracking_error`` (N,) distance (m) between the commanded and reached
+tip after the step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.surgery_scene import SIDES, SurgeryScene
+from sonogym.geometry import (
+    axis_angle_from_matrix,
+    matrix_from_axis_angle,
+    quat_from_matrix,
+)
+
+OBS_MODES = ("us", "ct", "labels", "state")
+FREE, DRILL, UNSAFE = 0, 1, 2
+
+#: The paper's joint randomisation for training (rad, uniform +-).
+TRAIN_JOINT_NOISE = (0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1)
+#: The paper's wider ranges for expert data collection (rad, uniform +-); starts may be unsafe.
+DATA_COLLECTION_JOINT_NOISE = (0.3, 0.25, 0.2, 0.2, 0.2, 0.2, 0.1)
+
+_START_REDRAWS = 20
+
+
+@dataclass(frozen=True)
+class SurgeryConfig:
+    """Surgery task settings (paper defaults). Every field is a ``make_vec`` keyword."""
+
+    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
+    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
+    simulator: str = "physical"  # "physical" | "sonogym"
+    obs_mode: str = "us"  # "us" | "ct" | "labels" | "state"
+    device: str = "cpu"
+    episode_length: int = 600  # control steps (paper)
+    target_vertebra: str = "L4"
+    side: str = "right"  # drilled pedicle, the patient's side: "right" | "left"
+    skin_distance: float = 0.05  # m, l: p_l = [0, 0, -l] in {G} (appendix: 50 mm)
+    corridor_margin: float = 0.002  # m, d = 2 (r + corridor_margin)
+    start_height: float = 0.09  # m, nominal drill-tip start above p_l (paper: C_free)
+    joint_noise: tuple[float, ...] = TRAIN_JOINT_NOISE  # rad, uniform +- per drill joint
+    require_free_start: bool = True  # redraw drill starts whose tip is not in C_free
+    probe_offset: float = 0.03  # m, probe from the vertebra's midline (paper)
+    probe_offset_noise: float = 0.005  # m, uniform +- along both skin axes (paper)
+    probe_tilt: float = 0.4  # rad, image plane tilted toward the midline (reference)
+    probe_yaw: float = math.pi / 2  # rad, x_U along the spine (reference: 1.57)
+    probe_settle_steps: int = 40  # control steps of the probe arm's settle per reset
+    gel_depth: float = 0.01  # m, coupling gel under the tilted probe face
+    action_scale: tuple[float, ...] = (0.1, 0.1, 0.1, 1.0, 1.0, 1.0)  # m x3, rad x3 per unit
+    action_limit: tuple[float, ...] = (0.03, 0.03, 0.03, 0.1, 0.1, 0.1)  # m x3, rad x3 per step
+    w4: float = 30.0  # reward per m of progress toward p_l in C_free (paper)
+    w5: float = 5.0  # reward per rad of drill-axis alignment (paper)
+    w6: float = 300.0  # reward per m of progress toward {G} in C_drill (paper)
+
+    def __post_init__(self) -> None:
+        if self.obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
+        if self.side not in SIDES:
+            raise ValueError(f"side {self.side!r} is not one of {SIDES}")
+        if self.episode_length < 1:
+            raise ValueError("episode_length must be >= 1")
+        if len(self.joint_noise) != 7 or any(v < 0 for v in self.joint_noise):
+            raise ValueError(f"joint_noise needs 7 values >= 0 (rad), got {self.joint_noise}")
+        for name in ("action_scale", "action_limit"):
+            v = getattr(self, name)
+            if len(v) != 6 or any(x <= 0 for x in v):
+                raise ValueError(f"{name} needs 6 positive values, got {v}")
+        if not (self.skin_distance > 0 and self.start_height >= 0):
+            raise ValueError("skin_distance must be > 0 and start_height >= 0 (metres)")
+        if isinstance(self.patients, int | str):
+            object.__setattr__(self, "patients", (self.patients,))
+        object.__setattr__(self, "patients", tuple(self.patients))
+
+
+# ----------------------------------------------------------------------------- pure functions
+
+
+def drill_angle(rot_gd: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) rotation of {D} in {G} -> (N,) angle (rad) between z_D and z_G."""
+    z = rot_gd[..., :, 2]
+    return torch.atan2(z[..., :2].norm(dim=-1), z[..., 2])
+
+
+def surgery_regions(
+    p: torch.Tensor, half_width: torch.Tensor, skin_distance: float
+) -> torch.Tensor:
+    """(N,) region of tip positions p (N, 3) in {G} (m): FREE (p_z <= -l), DRILL
+    (sqrt(p_x^2 + p_y^2) <= d/2 and -l < p_z <= 0) or UNSAFE."""
+    free = p[:, 2] <= -skin_distance
+    drill = ~free & (p[:, :2].norm(dim=-1) <= half_width) & (p[:, 2] <= 0)
+    region = torch.full(p.shape[:1], UNSAFE, dtype=torch.long, device=p.device)
+    region[drill] = DRILL
+    region[free] = FREE
+    return region
+
+
+def surgery_potential(
+    p: torch.Tensor,
+    theta: torch.Tensor,
+    depth: torch.Tensor,
+    region: torch.Tensor,
+    skin_distance: float,
+    w4: float,
+    w5: float,
+    w6: float,
+) -> torch.Tensor:
+    """Phi of safe tip states (see the module docstring): p (N, 3) m in {G}, theta (N,) rad,
+    depth m (N,) <= 0 (deepest p_z reached in C_drill), region (N,) FREE or DRILL."""
+    p_l = torch.zeros_like(p)
+    p_l[:, 2] = -skin_distance
+    free = -w4 * (p - p_l).norm(dim=-1) + w6 * depth
+    drill = -w6 * torch.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + depth**2)
+    return torch.where(region == FREE, free, drill) - w5 * theta
+
+
+def surgery_reward(
+    anchor_p: torch.Tensor,
+    anchor_theta: torch.Tensor,
+    depth: torch.Tensor,
+    anchored: torch.Tensor,
+    p_next: torch.Tensor,
+    theta_next: torch.Tensor,
+    half_width: torch.Tensor,
+    skin_distance: float,
+    w4: float,
+    w5: float,
+    w6: float,
+) -> tuple[torch.Tensor, ...]:
+    """One transition of the guarded piecewise reward (module docstring).
+
+    Args:
+        anchor_p, anchor_theta: (N, 3) m and (N,) rad, the last safe tip state before the step.
+        depth: (N,) m, deepest p_z reached inside C_drill before the step (-l initially).
+        anchored: (N,) bool, whether the tip has been safe at least once.
+        p_next, theta_next: the tip state after the step ({G}, m and rad).
+        half_width: (N,) m, d/2 = r + 2 mm.
+
+    Returns:
+        reward (N,), cost (N,) = 1[p_next unsafe], and the updated
+        (anchor_p, anchor_theta, depth, anchored, region_next).
+    """
+    l = skin_distance
+    region = surgery_regions(p_next, half_width, l)
+    safe = region != UNSAFE
+    new_depth = torch.where(region == DRILL, torch.maximum(depth, p_next[:, 2]), depth)
+    new_p = torch.where(safe[:, None], p_next, anchor_p)
+    new_theta = torch.where(safe, theta_next, anchor_theta)
+    old_region = surgery_regions(anchor_p, half_width, l)
+    phi_old = surgery_potential(anchor_p, anchor_theta, depth, old_region, l, w4, w5, w6)
+    new_anchor_region = torch.where(safe, region, old_region)
+    phi_new = surgery_potential(new_p, new_theta, new_depth, new_anchor_region, l, w4, w5, w6)
+    reward = torch.where(anchored, phi_new - phi_old, torch.zeros_like(phi_new))
+    cost = (~safe).to(p_next.dtype)
+    return reward, cost, new_p, new_theta, new_depth, anchored | safe, region
+
+
+def surgery_expert(
+    state: torch.Tensor,
+    radius: torch.Tensor,
+    skin_distance: float = 0.05,
+    approach: float = 0.01,
+    stop_short: float = 2e-4,
+    position_gain: float = 0.1,
+    rotation_gain: float = 0.1,
+    max_step: float = 0.01,
+    max_rotation: float = 0.05,
+    action_scale: tuple[float, ...] = (0.1, 0.1, 0.1, 1.0, 1.0, 1.0),
+) -> torch.Tensor:
+    """The paper's expert from the true state: to the skin point first, then along the
+    trajectory to {G} (reference ExpertSurgery, gains retuned for the kinematic arm).
+
+    ``state`` (N, 6) is the tip pose in {G} (``info["state"]``: position m, rotation vector
+    rad), ``radius`` (N,) the planned corridor radius r (``info["radius"]``). The waypoint is
+    the axis point ``stop_short`` before {G} (the target lies on C_drill's boundary p_z = 0, so
+    a controller converging onto it would cross it by rounding) once the tip is within r of the
+    trajectory axis with sin(theta) < 0.2 (reference), or already past p_l inside the corridor
+    (within r + 2 mm of the axis); before that it is the axis point
+    ``approach`` above p_l (in C_free, so the approach never grazes the unsafe region); a tip
+    off the corridor and below that height first backs out along -z_G. Action:
+    ``position_gain`` x the waypoint error in {D} (at most ``max_step`` m) and ``rotation_gain``
+    x the rotation vector turning z_D onto z_G, in {D} (at most ``max_rotation`` rad), in
+    action units.
+    """
+    p, r_gd = state[:, :3], matrix_from_axis_angle(state[:, 3:])
+    z_d = r_gd[:, :, 2]
+    lateral = p[:, :2].norm(dim=-1)
+    sin_t = z_d[:, :2].norm(dim=-1)
+    inserting = ((lateral < radius) & (sin_t < 0.2)) | (
+        (p[:, 2] > -skin_distance) & (lateral < radius + 0.002)
+    )
+    waypoint = torch.zeros_like(p)
+    waypoint[:, 2] = torch.where(inserting, -stop_short, -(skin_distance + approach))
+    # Off the corridor and not well above p_l's plane (only unsafe or data-collection starts):
+    # back out along -z_G first, then approach.
+    back_out = ~inserting & (lateral >= radius) & (p[:, 2] > -(skin_distance + approach / 2))
+    waypoint[:, :2] = torch.where(back_out[:, None], p[:, :2], waypoint[:, :2])
+    err_d = (r_gd.transpose(-1, -2) @ (waypoint - p).unsqueeze(-1)).squeeze(-1)
+    dp = position_gain * err_d
+    n = dp.norm(dim=-1, keepdim=True)
+    dp = dp * (max_step / n.clamp_min(1e-12)).clamp(max=1.0)
+    # rotation turning z_D onto z_G, expressed in {D}: axis z_D x z_G, angle theta
+    e_z = torch.zeros_like(z_d)
+    e_z[:, 2] = 1.0
+    axis_g = torch.linalg.cross(z_d, e_z)
+    s = axis_g.norm(dim=-1, keepdim=True)
+    theta = torch.atan2(s, z_d[:, 2:3])
+    rotvec_g = axis_g / s.clamp_min(1e-12) * theta
+    dw = rotation_gain * (r_gd.transpose(-1, -2) @ rotvec_g.unsqueeze(-1)).squeeze(-1)
+    m = dw.norm(dim=-1, keepdim=True)
+    dw = dw * (max_rotation / m.clamp_min(1e-12)).clamp(max=1.0)
+    scale = torch.tensor(action_scale, dtype=state.dtype, device=state.device)
+    return (torch.cat([dp, dw], -1) / scale).float()
+
+
+# ----------------------------------------------------------------------------- the env
+
+
+class SurgeryEnv(TorchVectorEnv):
+    """``SonoGym/Surgery-v0`` as a batched env; see the module docstring."""
+
+    def __init__(self, num_envs: int = 1, **kwargs) -> None:
+        cfg = make_config(SurgeryConfig, kwargs)
+        super().__init__(num_envs, cfg.device, cfg.episode_length)
+        self.cfg = cfg
+        self.scene = SurgeryScene(
+            cfg.patients,
+            num_envs,
+            spacing=cfg.phantom_spacing,
+            simulator=cfg.simulator,
+            side=cfg.side,
+            target_vertebra=cfg.target_vertebra,
+            device=self.device,
+            skin_distance=cfg.skin_distance,
+            start_height=cfg.start_height,
+            probe_offset=cfg.probe_offset,
+            probe_tilt=cfg.probe_tilt,
+            probe_yaw=cfg.probe_yaw,
+            probe_settle_steps=cfg.probe_settle_steps,
+            gel_depth=cfg.gel_depth,
+            render=cfg.obs_mode != "state",
+        )
+        n, dev = num_envs, self.device
+        f32 = dict(dtype=torch.float32, device=dev)
+        self.half_width = self.scene.radius + cfg.corridor_margin  # (N,) d/2, m
+        self.action_scale = torch.tensor(cfg.action_scale, **f32)
+        self.action_limit = torch.tensor(cfg.action_limit, **f32)
+        self.joint_noise = torch.tensor(cfg.joint_noise, **f32)
+        bound = (self.action_limit / self.action_scale).cpu().numpy()
+        img_shape = self.scene.image_shape
+        # tip position in {U} (m; the arms' reach bounds it well within 3 m) + unit quaternion
+        pose = spaces.Box(
+            np.array([-3.0] * 3 + [-1.0] * 4, np.float32),
+            np.array([3.0] * 3 + [1.0] * 4, np.float32),
+            dtype=np.float32,
+        )
+        if cfg.obs_mode == "state":
+            obs_space = spaces.Box(-np.inf, np.inf, (6,), np.float32)
+        elif cfg.obs_mode == "labels":
+            obs_space = spaces.Dict(
+                {"image": spaces.Box(0, 255, img_shape, np.uint8), "pose": pose}
+            )
+        else:
+            obs_space = spaces.Dict(
+                {"image": spaces.Box(0.0, 1.0, img_shape, np.float32), "pose": pose}
+            )
+        self._set_spaces(obs_space, spaces.Box(-bound, bound, (6,), np.float32))
+        img_dtype = torch.uint8 if cfg.obs_mode == "labels" else torch.float32
+        self._image = torch.zeros(n, *img_shape, dtype=img_dtype, device=dev)
+        self._state = torch.zeros(n, 6, **f32)
+        self._theta = torch.zeros(n, **f32)
+        self._region = torch.zeros(n, dtype=torch.long, device=dev)
+        self._anchor_p = torch.zeros(n, 3, **f32)
+        self._anchor_theta = torch.zeros(n, **f32)
+        self._depth = torch.full((n,), -cfg.skin_distance, **f32)
+        self._anchored = torch.zeros(n, dtype=torch.bool, device=dev)
+        self._cost = torch.zeros(n, **f32)
+        self._safe_steps = torch.zeros(n, **f32)
+        self._tracking_error = torch.zeros(n, **f32)
+        self.start_redraws = torch.zeros(n, dtype=torch.long, device=dev)
+
+    # ------------------------------------------------------------------ hooks
+    def _reset_idx(self, env_ids: torch.Tensor) -> None:
+        cfg, sc, k = self.cfg, self.scene, len(env_ids)
+        h = cfg.probe_offset_noise
+        sc.reset_probe(env_ids, self.uniform(-h, h, k, 2).float())
+        if cfg.obs_mode != "state":
+            self._image[env_ids] = sc.observe(cfg.obs_mode, env_ids)
+        # Drill start: nominal joints + noise; redraw starts whose tip is not in C_free.
+        q = sc.drill_start_joints(env_ids, self._joint_noise(k))
+        redraws = torch.zeros(k, dtype=torch.long, device=self.device)
+        if cfg.require_free_start:
+            for _ in range(_START_REDRAWS):
+                pos, _ = sc.drill_fk(env_ids, q)
+                bad = self._regions_at(env_ids, pos) != FREE
+                if not bool(bad.any()):
+                    break
+                redraws += bad.long()
+                q_new = sc.drill_start_joints(env_ids, self._joint_noise(k))
+                q = torch.where(bad[:, None], q_new, q)
+            else:
+                pos, _ = sc.drill_fk(env_ids, q)
+                bad = self._regions_at(env_ids, pos) != FREE
+                q = torch.where(bad[:, None], sc.drill_start_joints(env_ids, 0 * q), q)
+        self.start_redraws[env_ids] = redraws
+        sc.set_drill(env_ids, q)
+        state, theta = self._measure(env_ids)
+        self._state[env_ids], self._theta[env_ids] = state, theta
+        region = surgery_regions(state[:, :3], self.half_width[env_ids], cfg.skin_distance)
+        safe = region != UNSAFE
+        depth = torch.full((k,), -cfg.skin_distance, dtype=torch.float32, device=self.device)
+        depth = torch.where(region == DRILL, torch.maximum(depth, state[:, 2]), depth)
+        self._region[env_ids] = region
+        self._anchor_p[env_ids] = state[:, :3]
+        self._anchor_theta[env_ids] = theta
+        self._depth[env_ids] = depth
+        self._anchored[env_ids] = safe
+        self._cost[env_ids] = 0.0
+        self._safe_steps[env_ids] = 0.0
+        self._tracking_error[env_ids] = 0.0
+
+    def _joint_noise(self, k: int) -> torch.Tensor:
+        return self.uniform(-1.0, 1.0, k, 7).float() * self.joint_noise
+
+    def _regions_at(self, env_ids: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        rg_t = self.scene.goal_rot[env_ids].transpose(-1, -2)
+        p = (rg_t @ (pos - self.scene.goal_pos[env_ids]).unsqueeze(-1)).squeeze(-1)
+        return surgery_regions(p, self.half_width[env_ids], self.cfg.skin_distance)
+
+    def _apply_action(self, actions: torch.Tensor) -> None:
+        cfg, sc = self.cfg, self.scene
+        delta = torch.maximum(
+            torch.minimum(actions * self.action_scale, self.action_limit), -self.action_limit
+        )
+        target_pos = sc.tip_pos + (sc.tip_rot @ delta[:, :3].unsqueeze(-1)).squeeze(-1)
+        target_rot = sc.tip_rot @ matrix_from_axis_angle(delta[:, 3:])
+        res = sc.step_drill(target_pos, target_rot)
+        self._tracking_error = (target_pos - res.pos).norm(dim=-1)
+        state, theta = self._measure(None)
+        reward, cost, ap, at, depth, anchored, region = surgery_reward(
+            self._anchor_p,
+            self._anchor_theta,
+            self._depth,
+            self._anchored,
+            state[:, :3],
+            theta,
+            self.half_width,
+            cfg.skin_distance,
+            cfg.w4,
+            cfg.w5,
+            cfg.w6,
+        )
+        self._reward = reward
+        self._cost = cost
+        self._anchor_p, self._anchor_theta, self._depth, self._anchored = ap, at, depth, anchored
+        self._region = region
+        self._state, self._theta = state, theta
+        self._safe_steps += (region != UNSAFE).float()
+
+    def _measure(self, env_ids: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        sl = slice(None) if env_ids is None else env_ids
+        p, r_gd = self.scene.tip_in_goal(sl)
+        return torch.cat([p, axis_angle_from_matrix(r_gd)], -1).float(), drill_angle(r_gd)
+
+    def _get_rewards(self) -> torch.Tensor:
+        return self._reward
+
+    def _get_observations(self, env_ids: torch.Tensor | None):
+        sl = slice(None) if env_ids is None else env_ids
+        if self.cfg.obs_mode == "state":
+            return self._state[sl].clone()
+        p, r_ud = self.scene.tip_in_probe(sl)
+        pose = torch.cat([p, quat_from_matrix(r_ud)], -1).float()
+        return {"image": self._image[sl].clone(), "pose": pose}
+
+    def _get_info(self) -> dict:
+        return {
+            "state": self._state.clone(),
+            "cost": self._cost.clone(),
+            "region": self._region.clone(),
+            "safe": self._region != UNSAFE,
+            "radius": self.scene.radius.clone(),
+            "max_depth": self._depth.clone(),
+            "tracking_error": self._tracking_error.clone(),
+        }
+
+    def errors(self, env_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Insertion error (|p_z|, mm), side error (sqrt(p_x^2 + p_y^2), mm) and rotation error
+        (angle between z_D and z_G, deg) of the reached tip."""
+        sl = slice(None) if env_ids is None else env_ids
+        p = self._state[sl, :3]
+        return {
+            "insertion_error_mm": p[:, 2].abs() * 1e3,
+            "side_error_mm": p[:, :2].norm(dim=-1) * 1e3,
+            "rotation_error_deg": self._theta[sl] * (180.0 / math.pi),
+        }
+
+    def _episode_metrics(self, env_ids: torch.Tensor) -> dict[str, torch.Tensor]:
+        out = self.errors(env_ids)
+        steps = self.episode_length_buf[env_ids].clamp_min(1).float()
+        out["safe_ratio"] = self._safe_steps[env_ids] / steps
+        return out
+
+    def _render_frame(self) -> np.ndarray:
+        return surgery_frame(self, self._state[:1, :3].cpu().numpy())
+
+
+# ----------------------------------------------------------------------------- drawing
+
+
+def side_view(
+    path: np.ndarray, half_width: float, skin_distance: float, size: int = 200
+) -> np.ndarray:
+    """RGB side view in {G} (horizontal p_x, vertical p_z pointing down, -150 ... +20 mm):
+    the corridor C_drill (green outline), the planned trajectory (green), the boundary of
+    C_free (gray), the tip's path (red) and the current tip (yellow). Metres in, uint8 out."""
+    img = np.full((size, size, 3), 30, np.uint8)
+    z_lo, z_hi, x_half = -0.15, 0.02, 0.085
+
+    def px(x, z):
+        i = np.clip(((z - z_lo) / (z_hi - z_lo) * (size - 1)).round().astype(int), 0, size - 1)
+        j = np.clip(((x + x_half) / (2 * x_half) * (size - 1)).round().astype(int), 0, size - 1)
+        return i, j
+
+    xs = np.linspace(-x_half, x_half, size)
+    i, j = px(xs, np.full(size, -skin_distance))
+    img[i, j] = (110, 110, 110)
+    zs = np.linspace(z_lo, 0.0, size)
+    i, j = px(np.zeros(size), zs)
+    img[i, j] = (40, 160, 40)
+    zc = np.linspace(-skin_distance, 0.0, size)
+    for x in (-half_width, half_width):
+        i, j = px(np.full(size, x), zc)
+        img[i, j] = (60, 230, 60)
+    i, j = px(np.linspace(-half_width, half_width, 20), np.zeros(20))
+    img[i, j] = (60, 230, 60)
+    if len(path):
+        i, j = px(path[:, 0], path[:, 2])
+        img[i, j] = (230, 40, 40)
+        i, j = px(path[-1:, 0], path[-1:, 2])
+        img[max(i[0] - 2, 0) : i[0] + 3, max(j[0] - 2, 0) : j[0] + 3] = (240, 220, 40)
+    return img
+
+
+def volume_strip(vol: torch.Tensor, gap: int = 1) -> torch.Tensor:
+    """(E, H, W) volume -> (H, E W + (E - 1) gap) image: the elevation slices side by side."""
+    if vol.dtype == torch.uint8:
+        vol = vol.float() / max(float(vol.max()), 1.0)
+    e, h, _ = vol.shape
+    sep = torch.zeros(h, gap, dtype=vol.dtype, device=vol.device)
+    parts = []
+    for i in range(e):
+        parts += [vol[i], sep] if i < e - 1 else [vol[i]]
+    return torch.cat(parts, 1)
+
+
+def surgery_frame(
+    env: SurgeryEnv, path: np.ndarray, image: torch.Tensor | None = None, zoom: int = 3
+) -> np.ndarray:
+    """Env 0's RGB frame: a 2-D image in [0, 1] (default: its volume's slices side by side),
+    upsampled ``zoom`` times, beside the side view of the tip's ``path`` in {G} (metres)."""
+    img = volume_strip(env._image[0]) if image is None else image
+    u = (img.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy().repeat(zoom, 0).repeat(zoom, 1)
+    u = np.repeat(u[..., None], 3, -1)
+    side = side_view(path, float(env.half_width[0]), env.cfg.skin_distance, size=u.shape[0])
+    return np.concatenate([u, np.zeros((u.shape[0], 4, 3), np.uint8), side], 1)
+
+
+def make_single(**kwargs) -> SingleEnv:
+    """``gymnasium.make("SonoGym/Surgery-v0")``: one env with NumPy I/O."""
+    return SingleEnv(SurgeryEnv, **kwargs)

@@ -1,0 +1,147 @@
+"""Probe held on the skin: surface command -> surface pose -> arm IK -> reached probe pose.
+
+A surface command (x, z, yaw, tilt) names a probe pose on the back's skin (see
+``sonogym.anatomy.surface.SkinSurface.surface_pose``: probe face centre on the skin point, beam
+along the tilted inward normal). ``SurfaceController`` turns it into the IK target of an arm
+whose tool tip is the probe face {U}, runs one control step, and reports the pose the arm
+actually reached: the ultrasound image must be sliced from that pose, so tracking lag and
+unreachable commands show up in the image.
+
+Robots depend on anatomy, never the other way round.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from sonogym.anatomy.surface import SkinSurface
+from sonogym.robots.arm import Arm, IKResult
+
+
+@dataclass
+class SurfaceStep:
+    """One control step of N probe arms (batch-first tensors, {P}, metres and radians).
+
+    Attributes:
+        q: (N, 7) joints after the step.
+        probe_pos, probe_rot: (N, 3), (N, 3, 3) reached probe pose (columns x_U, y_U, z_U).
+        target_pos, target_rot: the commanded surface pose.
+        pos_error, rot_error: (N,) distance and angle between reached and commanded poses.
+        reached: (N,) bool, within the arm's IK tolerances.
+        reachable: (N,) bool, False where the arm reports the target unreachable.
+    """
+
+    q: torch.Tensor
+    probe_pos: torch.Tensor
+    probe_rot: torch.Tensor
+    target_pos: torch.Tensor
+    target_rot: torch.Tensor
+    pos_error: torch.Tensor
+    rot_error: torch.Tensor
+    reached: torch.Tensor
+    reachable: torch.Tensor
+
+
+class SurfaceController:
+    """Keeps a probe arm's probe face on the skin at commanded surface poses.
+
+    Args:
+        skin: the patient's back (moved to the arm's device).
+        arm: an ``Arm`` whose tool tip is the probe face (e.g. ``ArmConfig(tool=PROBE_TOOL)``)
+            and whose base pose is set in the same patient frame.
+        settle_steps: control steps ``settle`` runs by default (reference: 200 physics steps
+            at 120 Hz = 100 control steps after a reset).
+    """
+
+    def __init__(self, skin: SkinSurface, arm: Arm, settle_steps: int = 100) -> None:
+        if settle_steps < 1:
+            raise ValueError(f"settle_steps must be >= 1, got {settle_steps}")
+        self.skin = skin.to(arm.device)
+        self.arm = arm
+        self.settle_steps = settle_steps
+
+    def target_pose(
+        self,
+        x: torch.Tensor,
+        z: torch.Tensor,
+        yaw: torch.Tensor,
+        tilt: torch.Tensor | None = None,
+        patient: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Surface command (N,) each, metres / rad -> probe target pos (N, 3), rot (N, 3, 3).
+        ``patient`` (N,) picks each env's skin when the controller holds stacked skins."""
+        n = x.shape[0] if x.dim() == 1 else None
+        for name, v in (("x", x), ("z", z), ("yaw", yaw), ("tilt", tilt)):
+            if v is None:
+                continue
+            if n is None or v.dim() != 1 or v.shape[0] != n:
+                raise ValueError(
+                    "surface command components x, z, yaw, tilt must be 1-D tensors of equal "
+                    f"length N; got {name} with shape {tuple(v.shape)} (x: {tuple(x.shape)})"
+                )
+            if not bool(torch.isfinite(v).all()):
+                raise ValueError(f"command component {name} contains NaN or inf")
+        dev, dt = self.arm.device, self.arm.dtype
+        x, z, yaw = (v.to(dev, dt) for v in (x, z, yaw))
+        tilt = None if tilt is None else tilt.to(dev, dt)
+        pos, rot = self.skin.surface_pose(x, z, yaw, tilt, patient=patient)
+        return pos.to(dt), rot.to(dt)
+
+    @staticmethod
+    def _wrap(result: IKResult, target_pos: torch.Tensor, target_rot: torch.Tensor) -> SurfaceStep:
+        return SurfaceStep(
+            q=result.q,
+            probe_pos=result.pos,
+            probe_rot=result.rot,
+            target_pos=target_pos,
+            target_rot=target_rot,
+            pos_error=result.pos_error,
+            rot_error=result.rot_error,
+            reached=result.reached,
+            reachable=result.reachable,
+        )
+
+    def step(
+        self,
+        q: torch.Tensor,
+        x: torch.Tensor,
+        z: torch.Tensor,
+        yaw: torch.Tensor,
+        tilt: torch.Tensor | None = None,
+        patient: torch.Tensor | None = None,
+    ) -> SurfaceStep:
+        """One control step of joints q (N, 7) toward the surface command."""
+        target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
+        return self._wrap(self.arm.ik_step(q, target_pos, target_rot), target_pos, target_rot)
+
+    def settle(
+        self,
+        q: torch.Tensor,
+        x: torch.Tensor,
+        z: torch.Tensor,
+        yaw: torch.Tensor,
+        tilt: torch.Tensor | None = None,
+        steps: int | None = None,
+        patient: torch.Tensor | None = None,
+    ) -> SurfaceStep:
+        """``steps`` (default ``settle_steps``) control steps toward a fixed surface command."""
+        target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
+        result = self.arm.track(q, target_pos, target_rot, steps or self.settle_steps)
+        return self._wrap(result, target_pos, target_rot)
+
+    def measured_command(
+        self, probe_pos: torch.Tensor, probe_rot: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Surface command (x, z, yaw in [0, 2 pi), tilt) of a reached probe pose."""
+        return self.skin.command_from_pose(probe_pos, probe_rot, patient)
+
+    def skin_distance(
+        self, probe_pos: torch.Tensor, patient: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(N,) signed distance of the probe-face centre from the skin along the inward normal,
+        metres (positive: inside the body), at the probe's (x, z)."""
+        x, z = probe_pos[:, 0], probe_pos[:, 2]
+        pt, n = self.skin.point(x, z, patient), self.skin.normal(x, z, patient)
+        return ((probe_pos - pt) * n).sum(-1)

@@ -1,0 +1,163 @@
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import sonogym  # noqa: F401
+from sonogym.envs.navigation import NavigationEnv, navigation_expert, navigation_reward
+
+FAST = dict(patients=(0,), phantom_spacing=0.002)
+
+
+def _env(n, **kw):
+    return gym.make_vec("SonoGym/Navigation-v0", num_envs=n, **{**FAST, **kw})
+
+
+def test_make_vec_gives_the_native_batched_env():
+    env = _env(3, obs_mode="state", robot=None)
+    assert isinstance(env, NavigationEnv)
+    assert env.num_envs == 3
+    assert env.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+
+
+def test_single_env_passes_gymnasium_checker():
+    env = gym.make("SonoGym/Navigation-v0", **FAST)
+    check_env(env.unwrapped, skip_render_check=True)
+
+
+def test_observation_matches_its_declared_space():
+    env = _env(2)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (2, 1, 200, 150) and obs.dtype == torch.float32
+    assert env.observation_space.contains(obs.numpy())
+    assert 0.0 <= float(obs.min()) and float(obs.max()) <= 1.0
+    assert float(obs.std()) > 0.01  # an image, not a constant
+    lab_env = _env(2, obs_mode="labels", robot=None)
+    lab, _ = lab_env.reset(seed=0)
+    assert lab.dtype == torch.uint8 and lab_env.observation_space.contains(lab.numpy())
+    assert {118, 119} <= set(torch.unique(lab).tolist())  # the image starts at the skin
+
+
+def test_reward_is_the_papers_formula_on_recorded_transitions():
+    env = _env(8, obs_mode="state", robot=None)
+    _, info = env.reset(seed=1)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        before = info["state"].double().numpy()
+        a = (torch.rand(8, 3, generator=g) * 4 - 2).numpy()
+        _, r, _, _, info = env.step(a)
+        after = info["state"].double().numpy()
+        want = 0.045 * 1e3 * (
+            np.linalg.norm(before[:, :3], axis=1) - np.linalg.norm(after[:, :3], axis=1)
+        ) + (np.linalg.norm(before[:, 3:], axis=1) - np.linalg.norm(after[:, 3:], axis=1))
+        assert np.allclose(r.numpy(), want, atol=1e-4)
+
+
+def test_reward_of_a_known_step():
+    p0 = torch.tensor([[0.010, 0.0, 0.0]])
+    p1 = torch.tensor([[0.007, 0.0, 0.0]])
+    q0 = torch.tensor([[0.0, 0.0, 0.5]])
+    q1 = torch.tensor([[0.0, 0.0, 0.4]])
+    r = navigation_reward(p0, q0, p1, q1, 0.045)
+    assert r.item() == pytest.approx(0.045 * 3 + 0.1)
+
+
+def test_expert_reaches_the_goal_and_random_does_not():
+    n = 64
+    env = _env(n, obs_mode="state")
+    _, info = env.reset(seed=123)
+    final = None
+    for _ in range(env.episode_length):
+        _, _, _, _, info = env.step(navigation_expert(info["state"]))
+        final = info.get("final_info", final)
+    pos, ang = final["position_error_mm"], final["angle_error_deg"]
+    ok = (pos < 2.0) & (ang < 2.0)
+    assert ok.float().mean() >= 0.95, (pos.max(), ang.max())
+    # a random policy does not
+    _, info = env.reset(seed=123)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(env.episode_length):
+        _, _, _, _, info = env.step(torch.rand(n, 3, generator=g) * 4 - 2)
+        final = info.get("final_info", final)
+    ok = (final["position_error_mm"] < 2.0) & (final["angle_error_deg"] < 2.0)
+    assert ok.float().mean() < 0.2
+
+
+def test_same_seed_same_episode_bit_for_bit():
+    def run():
+        env = _env(3)
+        obs, _ = env.reset(seed=7)
+        out = [obs]
+        g = torch.Generator().manual_seed(3)
+        for _ in range(3):
+            obs, r, *_ = env.step(torch.rand(3, 3, generator=g) * 4 - 2)
+            out += [obs, r]
+        return out
+
+    a, b = run(), run()
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_partial_reset_leaves_other_envs_untouched():
+    env = _env(4)
+    env.reset(seed=0)
+    obs, _, _, _, info = env.step(torch.ones(4, 3))
+    mask = torch.tensor([True, False, True, False])
+    obs2, info2 = env.reset(options={"reset_mask": mask})
+    assert torch.equal(obs2[~mask], obs[~mask])
+    assert torch.equal(info2["state"][~mask], info["state"][~mask])
+    assert not torch.equal(info2["state"][mask], info["state"][mask])
+    assert (env.episode_length_buf[mask] == 0).all() and (env.episode_length_buf[~mask] == 1).all()
+
+
+def test_autoreset_same_step_returns_final_obs_and_metrics():
+    env = _env(2, episode_length=3)
+    obs, info = env.reset(seed=0)
+    for _ in range(3):
+        obs, _, term, trunc, info = env.step(torch.zeros(2, 3))
+    assert trunc.all() and not term.any()
+    assert info["_final_obs"].all()
+    assert info["final_obs"].shape == obs.shape and not torch.equal(info["final_obs"], obs)
+    for k in ("position_error_mm", "angle_error_deg", "return"):
+        assert info["final_info"][k].shape == (2,)
+    assert (env.episode_length_buf == 0).all()
+
+
+def test_bad_actions_and_options_raise():
+    env = _env(2, obs_mode="state", robot=None)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        env.step(torch.tensor([[0.0, math.nan, 0.0], [0.0, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        env.step(torch.tensor([[0.0, 0.0, math.inf], [0.0, 0.0, 0.0]]))
+    with pytest.raises(TypeError, match="valid options"):
+        _env(1, obs_mod="us")
+    with pytest.raises(ValueError, match="obs_mode"):
+        _env(1, obs_mode="rgb")
+    with pytest.raises(ValueError, match="simulator"):
+        _env(1, simulator="ray-tracer")
+
+
+def test_envs_spread_over_patients():
+    env = _env(4, patients=(0, 1), obs_mode="state", robot=None)
+    g = env.goal_cmd
+    assert torch.equal(g[0], g[2]) and torch.equal(g[1], g[3])
+    assert not torch.equal(g[0], g[1])
+
+
+def test_action_scaling_and_clipping_in_si_units():
+    env = _env(2, obs_mode="state", robot=None)
+    env.reset(seed=0)
+    before = env.command.clone()
+    rot = env.scene.probe_rot.clone()
+    env.step(torch.tensor([[1.0, 0.0, 1.0], [5.0, 0.0, -5.0]]))
+    d = env.command - before
+    step = torch.stack([rot[:, 0, 0], rot[:, 2, 0]], -1)  # x_U in the frontal plane
+    assert torch.allclose(d[0, :2], 0.003 * step[0], atol=1e-6)
+    assert torch.allclose(d[1, :2], 0.006 * step[1], atol=1e-6)  # clipped to 6 mm
+    assert d[0, 2].item() == pytest.approx(0.1) and d[1, 2].item() == pytest.approx(-0.2)

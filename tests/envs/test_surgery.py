@@ -1,0 +1,416 @@
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import sonogym  # noqa: F401
+from sonogym.anatomy.labels import VERTEBRA_IDS
+from sonogym.envs.surgery import (
+    DRILL,
+    FREE,
+    UNSAFE,
+    SurgeryEnv,
+    surgery_expert,
+    surgery_regions,
+    surgery_reward,
+)
+from sonogym.geometry import matrix_from_quat
+
+FAST = dict(patients=(0,), phantom_spacing=0.002)
+L = 0.05  # m, skin distance l
+W4, W5, W6 = 30.0, 5.0, 300.0
+
+
+def _env(n, **kw):
+    return gym.make_vec("SonoGym/Surgery-v0", num_envs=n, **{**FAST, **kw})
+
+
+def _run_expert(env, info, steps):
+    final = None
+    for _ in range(steps):
+        a = surgery_expert(info["state"], info["radius"])
+        _, _, _, _, info = env.step(a)
+        final = info.get("final_info", final)
+    return final, info
+
+
+# ----------------------------------------------------------------------------- pure functions
+
+
+def test_regions_on_hand_made_points():
+    hw = torch.full((8,), 0.0055)  # d/2 = r + 2 mm with r = 3.5 mm
+    p = torch.tensor(
+        [
+            [0.0, 0.0, -0.10],  # far above: free
+            [0.08, 0.0, -0.051],  # anywhere with p_z <= -l: free, however lateral
+            [0.0, 0.0, -0.05],  # p_l itself: free (p_z = -l)
+            [0.0, 0.0, -0.02],  # on the axis inside the corridor: drill
+            [0.0038, 0.0038, -0.001],  # lateral 5.37 mm < 5.5 mm: drill
+            [0.0, 0.0056, -0.02],  # just outside the cylinder: unsafe
+            [0.0, 0.0, 0.001],  # past the target: unsafe
+            [0.02, 0.0, -0.049],  # beside the corridor below p_l's plane: unsafe
+        ]
+    )
+    want = [FREE, FREE, FREE, DRILL, DRILL, UNSAFE, UNSAFE, UNSAFE]
+    assert surgery_regions(p, hw, L).tolist() == want
+
+
+def _reward(p0, t0, p1, t1, depth=-L, anchored=True, hw=0.0055):
+    out = surgery_reward(
+        torch.tensor([p0], dtype=torch.float64),
+        torch.tensor([t0], dtype=torch.float64),
+        torch.tensor([depth], dtype=torch.float64),
+        torch.tensor([anchored]),
+        torch.tensor([p1], dtype=torch.float64),
+        torch.tensor([t1], dtype=torch.float64),
+        torch.tensor([hw], dtype=torch.float64),
+        L,
+        W4,
+        W5,
+        W6,
+    )
+    return [o[0] for o in out]
+
+
+def test_reward_is_the_papers_formula_within_each_safe_region():
+    # C_free -> C_free: w4 (|p_t - p_l| - |p_t+1 - p_l|) + w5 (theta_t - theta_t+1), per m/rad
+    p0, p1 = [0.03, 0.01, -0.12], [0.02, 0.0, -0.10]
+    pl = np.array([0, 0, -L])
+    want = W4 * (np.linalg.norm(np.array(p0) - pl) - np.linalg.norm(np.array(p1) - pl))
+    want += W5 * (0.3 - 0.25)
+    r, c, *_ = _reward(p0, 0.3, p1, 0.25)
+    assert r.item() == pytest.approx(want, abs=1e-9) and c.item() == 0
+    # C_drill, deepening along the corridor: w6 (|p_t| - |p_t+1|) + w5 (...)
+    p0, p1 = [0.001, 0.0, -0.03], [0.0005, 0.0, -0.02]
+    want = W6 * (np.linalg.norm(p0) - np.linalg.norm(p1)) + W5 * (0.05 - 0.02)
+    r, c, _, _, depth, *_ = _reward(p0, 0.05, p1, 0.02, depth=-0.03)
+    assert r.item() == pytest.approx(want, abs=1e-9) and c.item() == 0
+    assert depth.item() == pytest.approx(-0.02)
+
+
+def test_guard_retreat_and_readvance_inside_the_corridor_pay_nothing():
+    # deepest safe point so far -20 mm: moving up to -30 mm and back down pays 0 (axis, theta 0)
+    r_up, _, ap, at, depth, *_ = _reward([0, 0, -0.02], 0.0, [0, 0, -0.03], 0.0, depth=-0.02)
+    r_down, *_ = _reward(ap.tolist(), at.item(), [0, 0, -0.02], 0.0, depth=depth.item())
+    assert r_up.item() == pytest.approx(0.0, abs=1e-12)
+    assert r_down.item() == pytest.approx(0.0, abs=1e-12)
+    # going deeper than ever pays w6 per metre
+    r, *_ = _reward([0, 0, -0.02], 0.0, [0, 0, -0.015], 0.0, depth=-0.02)
+    assert r.item() == pytest.approx(W6 * 0.005)
+
+
+def test_cost_and_unsafe_transitions():
+    # into the unsafe region: cost 1, reward 0 (paid on re-entry); within unsafe: 0
+    r, c, ap, *_ = _reward([0, 0, -0.02], 0.0, [0.01, 0, -0.02], 0.0, depth=-0.02)
+    assert c.item() == 1.0 and r.item() == 0.0
+    assert ap.tolist() == pytest.approx([0, 0, -0.02])  # the last safe state is kept
+    r, c, *_ = _reward([0, 0, -0.02], 0.0, [0.03, 0, -0.04], 0.0, depth=-0.02)
+    assert c.item() == 1.0 and r.item() == 0.0
+    # never safe yet (a data-collection start): no reward until the tip has been safe
+    r, c, _, _, _, anchored, _ = _reward(
+        [0.02, 0, -0.03], 0.0, [0.0, 0, -0.03], 0.0, anchored=False
+    )
+    assert r.item() == 0.0 and c.item() == 0.0 and anchored.item()
+
+
+def _paper_reward_unguarded(path, thetas):
+    """The paper's piecewise formula as printed (no guard), for comparison."""
+    pl = np.array([0.0, 0.0, -L])
+    total = 0.0
+    for a, b, ta, tb in zip(path[:-1], path[1:], thetas[:-1], thetas[1:], strict=True):
+        reg = surgery_regions(torch.tensor(a[None]), torch.tensor([0.0055]), L).item()
+        if reg == FREE:
+            total += W4 * (np.linalg.norm(a - pl) - np.linalg.norm(b - pl)) + W5 * (ta - tb)
+        elif reg == DRILL:
+            total += W6 * (np.linalg.norm(a) - np.linalg.norm(b)) + W5 * (ta - tb)
+    return total
+
+
+def _segment(a, b, n):
+    return [np.array(a) + (np.array(b) - np.array(a)) * k / n for k in range(1, n + 1)]
+
+
+def test_no_closed_loop_through_the_unsafe_region_earns_reward():
+    start = [0.0, 0.0, -0.07]
+    # first descent: p_l, then down the corridor to 20 mm before the target
+    path = [np.array(start)]
+    path += _segment(start, [0, 0, -L], 4) + _segment([0, 0, -L], [0, 0, -0.02], 6)
+    first = len(path)
+    # the loop: out sideways (unsafe), up and far away through the unsafe region, back into
+    # C_free 100 mm aside, over to the axis, down to p_l and the corridor to -20 mm again
+    loop = _segment([0, 0, -0.02], [0.02, 0, -0.02], 2)
+    loop += _segment([0.02, 0, -0.02], [0.10, 0.0, -0.045], 4)
+    loop += _segment([0.10, 0.0, -0.045], [0.10, 0.0, -0.07], 2)
+    loop += _segment([0.10, 0.0, -0.07], start, 6)
+    loop += _segment(start, [0, 0, -L], 4) + _segment([0, 0, -L], [0, 0, -0.02], 6)
+    path += loop * 3  # three times round
+    thetas = [0.0] * len(path)
+    p = torch.tensor(np.array(path), dtype=torch.float64)
+    th = torch.tensor(thetas, dtype=torch.float64)
+    hw = torch.tensor([0.0055], dtype=torch.float64)
+    ap, at = p[:1], th[:1]
+    depth = torch.tensor([-L], dtype=torch.float64)
+    anchored = torch.tensor([True])
+    rewards, costs = [], []
+    for k in range(1, len(path)):
+        r, c, ap, at, depth, anchored, _ = surgery_reward(
+            ap, at, depth, anchored, p[k : k + 1], th[k : k + 1], hw, L, W4, W5, W6
+        )
+        rewards.append(r.item())
+        costs.append(c.item())
+    rewards = np.array(rewards)
+    descent = rewards[: first - 1].sum()
+    assert descent == pytest.approx(W4 * 0.02 + W6 * 0.03)  # to p_l, then 30 mm deeper
+    n = len(loop)
+    for i in range(3):
+        ret = rewards[first - 1 + i * n : first - 1 + (i + 1) * n].sum()
+        assert ret <= 1e-9, f"loop {i} earned {ret}"
+    assert sum(costs) > 0  # the loop did pass through the unsafe region
+    # the printed formula without the guard would have paid for every loop
+    one_loop = np.array(path[first - 1 : first + n])
+    unguarded_loop = _paper_reward_unguarded(one_loop, [0.0] * len(one_loop))
+    assert unguarded_loop > 1.0
+
+
+# ----------------------------------------------------------------------------- the env
+
+
+def test_make_vec_gives_the_native_batched_env():
+    env = _env(3, obs_mode="state")
+    assert isinstance(env, SurgeryEnv)
+    assert env.num_envs == 3 and env.episode_length == 600
+    assert env.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+    assert env.single_action_space.shape == (6,)
+    assert np.allclose(env.single_action_space.high, [0.3, 0.3, 0.3, 0.1, 0.1, 0.1])
+
+
+def test_single_env_passes_gymnasium_checker():
+    env = gym.make("SonoGym/Surgery-v0", **FAST)
+    check_env(env.unwrapped, skip_render_check=True)
+
+
+def test_observation_matches_its_declared_space():
+    env = _env(2)
+    obs, info = env.reset(seed=0)
+    img, pose = obs["image"], obs["pose"]
+    assert img.shape == (2, 5, 50, 37) and img.dtype == torch.float32
+    assert pose.shape == (2, 7) and pose.dtype == torch.float32
+    assert env.observation_space.contains({k: v.numpy() for k, v in obs.items()})
+    # pose = drill tip in the probe frame {U}
+    sc = env.scene
+    rel = sc.probe_rot.transpose(-1, -2) @ (sc.tip_pos - sc.probe_pos).unsqueeze(-1)
+    assert torch.allclose(pose[:, :3], rel.squeeze(-1), atol=1e-6)
+    r_ud = sc.probe_rot.transpose(-1, -2) @ sc.tip_rot
+    assert torch.allclose(matrix_from_quat(pose[:, 3:]), r_ud, atol=1e-5)
+    obs, *_ = env.step(torch.zeros(2, 6))
+    assert env.observation_space.contains({k: v.numpy() for k, v in obs.items()})
+    lab_env = _env(1, obs_mode="labels")
+    lab, _ = lab_env.reset(seed=0)
+    assert lab["image"].dtype == torch.uint8
+    assert lab_env.observation_space.contains({k: v.numpy() for k, v in lab.items()})
+
+
+@pytest.mark.parametrize("simulator", ["physical", "sonogym"])
+def test_volume_shows_the_vertebra_at_every_reset(simulator):
+    env = _env(8, simulator=simulator)
+    bright = 0.5 if simulator == "physical" else 0.15
+    vertebrae = torch.tensor(list(VERTEBRA_IDS.values()), dtype=torch.uint8)
+    for seed in (0, 1):  # 16 seeded resets
+        obs, _ = env.reset(seed=seed)
+        labels = env.scene.observe("labels")
+        us = obs["image"]
+        bone = torch.isin(labels, vertebrae)
+        assert (bone.flatten(1).float().mean(1) > 0.05).all()  # the vertebra is in view
+        assert (bone.flatten(1).any(1)).all()
+        # a bright bone surface: the top bone voxel of bone columns
+        below = torch.cumsum(bone.int(), dim=2) == 1
+        surface = bone & below
+        peak = torch.where(surface, us, torch.zeros_like(us)).flatten(1).amax(1)
+        assert (peak > bright).all(), peak
+
+
+def test_probe_placement_within_its_randomisation_range():
+    env = _env(32, obs_mode="state")
+    env.reset(seed=3)
+    sc = env.scene
+    x, z, yaw, tilt = sc.measured_probe_command()
+    centre = sc.target_centres
+    dx = x - (centre[:, 0] - 0.03)  # right pedicle: probe on the patient's left
+    dz = z - centre[:, 2]
+    tol = 2e-4
+    assert (dx.abs() <= 0.005 + tol).all() and (dz.abs() <= 0.005 + tol).all()
+    assert dx.abs().max() > 0.003 and dz.abs().max() > 0.003  # the range is used
+    assert torch.allclose(yaw, torch.full_like(yaw, math.pi / 2), atol=2e-3)
+    assert torch.allclose(tilt, torch.full_like(tilt, -0.4), atol=2e-3)
+    # the beam points toward the midline (+x from the left side)
+    assert (sc.probe_rot[:, 0, 2] > 0.3).all()
+    assert (sc.probe_reach_error < 1e-4).all()
+    # the probe stays still during the episode
+    pos = sc.probe_pos.clone()
+    env.step(torch.ones(32, 6) * 0.1)
+    assert torch.equal(sc.probe_pos, pos)
+
+
+def test_drill_starts_in_the_free_region():
+    env = _env(64, obs_mode="state")
+    _, info = env.reset(seed=5)
+    assert (info["region"] == FREE).all()
+    assert (info["cost"] == 0).all()
+    nominal = _env(2, obs_mode="state", joint_noise=(0.0,) * 7)
+    _, info = nominal.reset(seed=0)
+    p = info["state"][:, :3]
+    assert torch.allclose(p, torch.tensor([0.0, 0.0, -(L + 0.09)]).expand(2, 3), atol=1e-4)
+    assert (nominal._theta < 1e-3).all()
+
+
+def test_reward_and_cost_on_recorded_transitions():
+    n = 8
+    env = _env(n, obs_mode="state", episode_length=200)
+    _, info = env.reset(seed=2)
+    g = torch.Generator().manual_seed(0)
+    half_width = (info["radius"] + 0.002).double().numpy()
+    pl = np.array([0.0, 0.0, -L])
+    states = [info["state"].double().numpy()]
+    thetas = [env._theta.double().numpy()]
+    rewards, costs = [], []
+    for _ in range(150):
+        a = surgery_expert(info["state"], info["radius"], position_gain=0.2)
+        a = a + (torch.rand(n, 6, generator=g) - 0.5) * torch.tensor([0.1] * 3 + [0.02] * 3)
+        _, r, _, _, info = env.step(a)
+        states.append(info["state"].double().numpy())
+        thetas.append(env._theta.double().numpy())
+        rewards.append(r.double().numpy())
+        costs.append(info["cost"].double().numpy())
+
+    # an independent NumPy reading of the documented formula
+    def region(p):
+        lat = np.linalg.norm(p[:, :2], axis=1)
+        free = p[:, 2] <= -L
+        drill = ~free & (lat <= half_width) & (p[:, 2] <= 0)
+        return np.where(free, FREE, np.where(drill, DRILL, UNSAFE))
+
+    def phi(p, th, m, reg):
+        f = -W4 * np.linalg.norm(p - pl, axis=1) + W6 * m
+        d = -W6 * np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + m**2)
+        return np.where(reg == FREE, f, d) - W5 * th
+
+    p0 = states[0][:, :3]
+    reg = region(p0)
+    anchor, anchor_th, anchor_reg = p0.copy(), thetas[0].copy(), reg.copy()
+    m = np.where(reg == DRILL, np.maximum(-L, p0[:, 2]), -L)
+    checked_paper = 0
+    for t in range(150):
+        p1, th1 = states[t + 1][:, :3], thetas[t + 1]
+        reg1 = region(p1)
+        safe = reg1 != UNSAFE
+        m1 = np.where(reg1 == DRILL, np.maximum(m, p1[:, 2]), m)
+        a1 = np.where(safe[:, None], p1, anchor)
+        at1 = np.where(safe, th1, anchor_th)
+        ar1 = np.where(safe, reg1, anchor_reg)
+        want = phi(a1, at1, m1, ar1) - phi(anchor, anchor_th, m, anchor_reg)
+        assert np.allclose(rewards[t], want, atol=2e-4), t
+        assert np.array_equal(costs[t], (~safe).astype(float))
+        # where both states are in C_free the paper's formula holds as printed
+        p0 = states[t][:, :3]
+        both_free = (region(p0) == FREE) & (reg1 == FREE)
+        paper = W4 * (np.linalg.norm(p0 - pl, axis=1) - np.linalg.norm(p1 - pl, axis=1)) + W5 * (
+            thetas[t] - th1
+        )
+        assert np.allclose(rewards[t][both_free], paper[both_free], atol=2e-4)
+        checked_paper += int(both_free.sum())
+        anchor, anchor_th, anchor_reg, m = a1, at1, ar1, m1
+    assert checked_paper > 50
+    assert np.concatenate(costs).sum() >= 0
+
+
+def test_over_fast_drill_command_leaves_a_tracking_error():
+    env = _env(2, obs_mode="state", joint_noise=(0.0,) * 7)  # both envs at the nominal start
+    env.reset(seed=0)
+    before = env.scene.tip_pos.clone()
+    a = torch.zeros(2, 6)
+    a[0, 0] = 0.3  # 30 mm along x_D in one step: faster than the joints allow
+    a[1, 0] = 10.0  # scaled by 0.1 m and clipped to the same 30 mm
+    _, _, _, _, info = env.step(a)
+    moved = (env.scene.tip_pos - before).norm(dim=-1)
+    assert (info["tracking_error"] > 0.005).all() and (moved < 0.025).all()
+    assert torch.allclose(env.scene.tip_pos[0], env.scene.tip_pos[1], atol=1e-6)
+    # a slow command is tracked
+    a = torch.zeros(2, 6)
+    a[:, 2] = 0.01  # 1 mm along the drill axis
+    _, _, _, _, info = env.step(a)
+    assert (info["tracking_error"] < 1e-4).all()
+
+
+def test_expert_reaches_the_target_safely():
+    n = 64
+    env = _env(n, obs_mode="state")
+    _, info = env.reset(seed=123)
+    final, _ = _run_expert(env, info, env.episode_length)
+    ins, side = final["insertion_error_mm"], final["side_error_mm"]
+    rot, safe = final["rotation_error_deg"], final["safe_ratio"]
+    ok = (ins < 2.0) & (side < 1.0) & (rot < 2.0) & (safe == 1.0)
+    assert ok.float().mean() >= 0.95, (ins.max(), side.max(), rot.max(), safe.min())
+    assert (final["return"] > 10).all()
+
+
+def test_left_pedicle_option():
+    env = _env(4, obs_mode="state", side="left", episode_length=250)
+    _, info = env.reset(seed=0)
+    sc = env.scene
+    traj = sc.patients[0].landmarks.trajectory("L4", "left")
+    assert np.allclose(sc.goal_pos[0].numpy(), traj.target, atol=1e-6)
+    assert (sc.probe_pos[:, 0] > sc.target_centres[:, 0] + 0.02).all()  # probe on the right
+    assert (sc.probe_rot[:, 0, 2] < -0.3).all()  # beam toward the midline
+    final, _ = _run_expert(env, info, 250)
+    assert (final["insertion_error_mm"] < 2).all() and (final["safe_ratio"] == 1).all()
+
+
+def test_same_seed_same_episode_bit_for_bit():
+    def run():
+        env = _env(2)
+        obs, _ = env.reset(seed=7)
+        out = [obs["image"], obs["pose"]]
+        g = torch.Generator().manual_seed(3)
+        for _ in range(3):
+            obs, r, *_ = env.step(torch.rand(2, 6, generator=g) * 0.2 - 0.1)
+            out += [obs["pose"], r]
+        return out
+
+    a, b = run(), run()
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_autoreset_and_partial_reset():
+    env = _env(2, episode_length=3)
+    obs, info = env.reset(seed=0)
+    for _ in range(3):
+        obs, _, term, trunc, info = env.step(torch.zeros(2, 6))
+    assert trunc.all() and not term.any()
+    for k in ("insertion_error_mm", "side_error_mm", "rotation_error_deg", "safe_ratio"):
+        assert info["final_info"][k].shape == (2,)
+    assert (info["final_info"]["safe_ratio"] == 1).all()
+    assert (env.episode_length_buf == 0).all()
+    obs, *_ = env.step(torch.ones(2, 6) * 0.05)
+    mask = torch.tensor([True, False])
+    obs2, info2 = env.reset(options={"reset_mask": mask})
+    assert torch.equal(obs2["pose"][1], obs["pose"][1])
+    assert torch.equal(obs2["image"][1], obs["image"][1])
+    assert env.episode_length_buf.tolist() == [0, 1]
+
+
+def test_bad_options_raise():
+    with pytest.raises(ValueError, match="side"):
+        _env(1, side="middle")
+    with pytest.raises(ValueError, match="obs_mode"):
+        _env(1, obs_mode="rgb")
+    with pytest.raises(ValueError, match="joint_noise"):
+        _env(1, joint_noise=(0.1, 0.1))
+    with pytest.raises(TypeError, match="valid options"):
+        _env(1, sid="left")
+    env = _env(1, obs_mode="state")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(torch.zeros(1, 3))

@@ -1,0 +1,48 @@
+"""Load a trained policy from a run directory written by ``sonogym.agents.train``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from sonogym.agents.adapter import ObsLayout
+from sonogym.agents.networks import SharedActorCritic, make_models
+
+
+def load_policy(
+    run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"
+) -> tuple[SharedActorCritic, dict]:
+    """(policy-and-value module in eval mode, the run's resolved config) from ``run``.
+
+    ``checkpoint``: a path, or None for the newest ``checkpoints/agent_<t>.pt``. The module
+    takes the adapter's flat observations (``config["obs_layout"]``); its deterministic action
+    is ``module.act({"observations": x}, role="policy")[1]["mean_actions"]``.
+    """
+    from sonogym.agents.train import latest_checkpoint
+
+    run = Path(run)
+    cfg_path = run / "config.json"
+    if not cfg_path.exists():
+        raise FileNotFoundError(f"{cfg_path} not found: is {run} a `sonogym train` run directory?")
+    cfg = json.loads(cfg_path.read_text())
+    if checkpoint is None:
+        found = latest_checkpoint(run)
+        if found is None:
+            raise FileNotFoundError(f"no checkpoints/agent_<t>.pt in {run}")
+        checkpoint = found[0]
+    layout = ObsLayout(
+        tuple(cfg["obs_layout"]["keys"]),
+        tuple(tuple(s) for s in cfg["obs_layout"]["shapes"]),
+    )
+    low = np.asarray(cfg["action_space"]["low"], np.float32)
+    high = np.asarray(cfg["action_space"]["high"], np.float32)
+    model = make_models(cfg["task"], layout, gym.spaces.Box(low, high, dtype=np.float32), device)
+    model = model["policy"]
+    state = torch.load(checkpoint, map_location=device, weights_only=False)
+    model.load_state_dict(state["policy"])
+    model.eval()
+    return model, cfg

@@ -127,3 +127,24 @@ def test_paper_hyperparameters():
     for c in (nav, rec, sur):
         assert c.num_envs == 128 and c.ppo.kl_threshold == 0.008 == c.a2c.kl_threshold
         assert c.ppo.grad_norm_clip == 1.0 and c.ppo.ratio_clip == 0.2
+
+
+def test_cli_train_and_refusal(tmp_path):
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["train", "--task", "navigation", "--algo", "ppo-sf"])
+    flat = "".join(c for c in bad.output if c.isalnum() or c in "[]',:-")
+    assert bad.exit_code != 0 and "supported:['ppo','a2c']" in flat
+    out = tmp_path / "cli"
+    args = ["train", "--task", "surgery", "--algo", "ppo", "--envs", "2", "--steps", "16"]
+    args += ["--patients", "0", "--phantom-spacing", "2", "--out", str(out)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert (out / "checkpoints" / "agent_16.pt").exists()
+    assert json.loads((out / "config.json").read_text())["task_config"]["env_kwargs"] == {
+        "patients": [0],
+        "phantom_spacing": 0.002,
+    }

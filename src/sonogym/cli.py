@@ -167,6 +167,27 @@ def train(
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 
 
+@app.command("eval")
+def eval_(
+    run: Annotated[Path, typer.Option(help="Run directory written by `sonogym train`.")],
+    trials: Annotated[int, typer.Option(help="Episodes per controller.")] = 100,
+    envs: Annotated[
+        int | None, typer.Option(help="Parallel envs (default min(16, trials)).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the evaluation starts.")] = 1000,
+    device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+) -> None:
+    """Evaluate a run's policy, the task's expert and a random policy; print and save the table."""
+    from sonogym.evaluation.rl_eval import evaluate_run, format_table
+
+    try:
+        results = evaluate_run(run, trials=trials, envs=envs, seed=seed, device=device)
+    except FileNotFoundError as e:
+        raise typer.BadParameter(str(e)) from None
+    typer.echo(format_table(results), nl=False)
+    typer.echo(f"wrote {run}/eval.md and eval.json")
+
+
 def main() -> None:
     app()
 

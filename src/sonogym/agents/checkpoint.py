@@ -46,3 +46,20 @@ def load_policy(
     model.load_state_dict(state["policy"])
     model.eval()
     return model, cfg
+
+
+def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
+    """(cost critic in eval mode, filter threshold) of a ``ppo-sf`` run."""
+    from sonogym.agents.safety_filter import CostCritic
+    from sonogym.agents.train import latest_checkpoint
+
+    policy, cfg = load_policy(run, checkpoint, device)
+    if cfg["algo"] != "ppo-sf":
+        raise ValueError(f"{run} is a {cfg['algo']} run; only ppo-sf runs have a cost critic")
+    if checkpoint is None:
+        checkpoint = latest_checkpoint(run)[0]
+    critic = CostCritic(cfg["task"], policy.encoder.layout, policy.action_space, device)
+    state = torch.load(checkpoint, map_location=device, weights_only=False)
+    critic.load_state_dict(state["cost_critic"])
+    critic.eval()
+    return critic, float(cfg["task_config"]["cost_threshold"])

@@ -41,7 +41,7 @@ ENV_IDS = {
     "reconstruction": "SonoGym/Reconstruction-v0",
     "surgery": "SonoGym/Surgery-v0",
 }
-NOT_YET = ("ppo-sf", "ppo-lag")
+NOT_YET = ("ppo-lag",)
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,8 @@ class TaskRLConfig:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
+    cost_learning_rate: float = 1e-4  # ppo-sf: cost critic's Adam learning rate (reference)
+    cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (reference; cost in [0, 1])
 
     @property
     def env_id(self) -> str:
@@ -171,8 +173,8 @@ def build_agent(
     """The skrl agent (PPO or A2C) for ``algo`` on ``cfg.task``, logging into ``out``.
 
     ``write_interval`` / ``checkpoint_interval`` are in env steps (0 disables). Unsupported
-    pairs raise ``ValueError`` naming the supported algorithms; ``ppo-sf`` and ``ppo-lag`` raise
-    ``NotImplementedError`` until they exist.
+    pairs raise ``ValueError`` naming the supported algorithms; ``ppo-lag`` raises
+    ``NotImplementedError`` until it exists. ``ppo-sf`` needs ``models["cost_critic"]``.
     """
     from skrl.agents.torch import ExperimentCfg
     from skrl.agents.torch.a2c import A2C, A2C_CFG
@@ -185,7 +187,7 @@ def build_agent(
     if algo in NOT_YET:
         raise NotImplementedError(
             f"{algo!r} on {cfg.task} is planned (issue 8) but not yet implemented; "
-            f"available now: ['ppo', 'a2c']"
+            f"available now: {[a for a in SUPPORTED[cfg.task] if a not in NOT_YET]}"
         )
     out = Path(out)
     common = dict(
@@ -213,14 +215,22 @@ def build_agent(
     if algo == "a2c":
         agent_cfg, cls = A2C_CFG(**common), A2C
     else:
-        agent_cfg = PPO_CFG(
+        if algo == "ppo-sf":
+            from sonogym.agents.safety_filter import PPO_SF_CFG, PPOSafetyFilter
+
+            cfg_cls, cls = PPO_SF_CFG, PPOSafetyFilter
+            common.update(
+                cost_learning_rate=cfg.cost_learning_rate, cost_threshold=cfg.cost_threshold
+            )
+        else:
+            cfg_cls, cls = PPO_CFG, PPO
+        agent_cfg = cfg_cls(
             **common,
             learning_epochs=p.learning_epochs,
             ratio_clip=p.ratio_clip,
             value_clip=p.value_clip,
             value_loss_scale=p.value_loss_scale,
         )
-        cls = PPO
     return cls(
         models=models,
         memory=memory,

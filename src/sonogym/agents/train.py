@@ -140,6 +140,10 @@ def train(
     env = make_env(cfg, cfg.num_envs, device)
     adapter = SkrlEnvAdapter(env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start)
     models = make_models(task, adapter.layout, adapter.action_space, device)
+    if algo == "ppo-sf":
+        from sonogym.agents.safety_filter import CostCritic
+
+        models["cost_critic"] = CostCritic(task, adapter.layout, adapter.action_space, device)
     if checkpoint_interval is None:
         checkpoint_interval = params.rollouts * max(1, round(steps / 10 / params.rollouts))
     if write_interval is None:

@@ -4,7 +4,8 @@
 optionally overridden), runs ``trials`` episodes for each controller from the same seeded
 starts and returns the task's metrics (mean and std over episodes):
 
-* ``policy``: the run's newest checkpoint, deterministic (the Gaussian's mean action);
+* ``policy``: the run's newest checkpoint, deterministic (the Gaussian's mean action); for a
+  ``ppo-sf`` run, through its safety filter (actions with Q_c > threshold become 0);
 * ``expert``: the task's expert (navigation, surgery) or heuristic raster (reconstruction),
   from the privileged ``info``, as ``sonogym demo`` runs it;
 * ``random``: actions uniform in the env's action box, from a seeded generator.
@@ -55,6 +56,12 @@ def evaluate_run(
         raise ValueError(f"trials must be >= 1, got {trials}")
     run = Path(run)
     model, cfg = load_policy(run, device=device)
+    critic = None
+    if cfg["algo"] == "ppo-sf":  # the policy acts through its safety filter
+        from sonogym.agents.checkpoint import load_cost_critic
+        from sonogym.agents.safety_filter import filter_actions
+
+        critic, threshold = load_cost_critic(run, device=device)
     task = cfg["task"]
     tc = cfg["task_config"]
     env_kwargs = {**_tuples(tc["env_kwargs"]), **(env_overrides or {})}
@@ -76,6 +83,8 @@ def evaluate_run(
                 if name == "policy":
                     x = adapter.flatten(obs)
                     action = model.act({"observations": x}, role="policy")[1]["mean_actions"]
+                    if critic is not None:
+                        action, _ = filter_actions(critic, x, action, threshold)
                 elif name == "expert":
                     action = demo.expert(env, info)
                 else:

@@ -162,7 +162,7 @@ def train(
             device=device,
             resume=resume,
         )
-    except (NotImplementedError, FileExistsError) as e:
+    except FileExistsError as e:
         raise typer.BadParameter(str(e)) from None
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 

@@ -97,14 +97,14 @@ def test_every_pair_updates_weights(tmp_path, task, algo, steps):
     assert policy.mean_head.out_features == {"reconstruction": 4, "surgery": 6}.get(task, 3)
 
 
-def test_unsupported_and_not_yet_implemented(tmp_path):
+def test_unsupported_pairs_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"supported: \['ppo', 'a2c'\]"):
         check_supported("navigation", "ppo-lag")
     with pytest.raises(ValueError, match="known tasks"):
         check_supported("nope", "ppo")
-    assert "ppo-lag" in SUPPORTED["surgery"]
-    with pytest.raises(NotImplementedError, match="not yet implemented"):
-        _tiny("surgery", "ppo-lag", tmp_path / "lag", steps=16)
+    assert SUPPORTED["surgery"] == ("ppo", "a2c", "ppo-sf", "ppo-lag")
+    with pytest.raises(ValueError, match="not supported on reconstruction"):
+        _tiny("reconstruction", "ppo-sf", tmp_path / "sf", steps=16)
 
 
 def test_paper_hyperparameters():

@@ -41,7 +41,6 @@ ENV_IDS = {
     "reconstruction": "SonoGym/Reconstruction-v0",
     "surgery": "SonoGym/Surgery-v0",
 }
-NOT_YET = ("ppo-lag",)
 
 
 @dataclass(frozen=True)
@@ -94,6 +93,8 @@ class TaskRLConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf: cost critic's Adam learning rate (reference)
     cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (reference; cost in [0, 1])
+    cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
+    pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd (reference)
 
     @property
     def env_id(self) -> str:
@@ -173,8 +174,8 @@ def build_agent(
     """The skrl agent (PPO or A2C) for ``algo`` on ``cfg.task``, logging into ``out``.
 
     ``write_interval`` / ``checkpoint_interval`` are in env steps (0 disables). Unsupported
-    pairs raise ``ValueError`` naming the supported algorithms; ``ppo-lag`` raises
-    ``NotImplementedError`` until it exists. ``ppo-sf`` needs ``models["cost_critic"]``.
+    pairs raise ``ValueError`` naming the supported algorithms. ``ppo-sf`` needs
+    ``models["cost_critic"]``, ``ppo-lag`` ``models["cost_value"]``.
     """
     from skrl.agents.torch import ExperimentCfg
     from skrl.agents.torch.a2c import A2C, A2C_CFG
@@ -184,11 +185,6 @@ def build_agent(
     from skrl.resources.schedulers.torch import KLAdaptiveLR
 
     p = cfg.params(algo)
-    if algo in NOT_YET:
-        raise NotImplementedError(
-            f"{algo!r} on {cfg.task} is planned (issue 8) but not yet implemented; "
-            f"available now: {[a for a in SUPPORTED[cfg.task] if a not in NOT_YET]}"
-        )
     out = Path(out)
     common = dict(
         rollouts=p.rollouts,
@@ -221,6 +217,15 @@ def build_agent(
             cfg_cls, cls = PPO_SF_CFG, PPOSafetyFilter
             common.update(
                 cost_learning_rate=cfg.cost_learning_rate, cost_threshold=cfg.cost_threshold
+            )
+        elif algo == "ppo-lag":
+            from sonogym.agents.lagrangian import PPO_LAG_CFG, PPOLagrangian
+
+            cfg_cls, cls = PPO_LAG_CFG, PPOLagrangian
+            common.update(
+                cost_learning_rate=cfg.cost_learning_rate,
+                cost_limit=cfg.cost_limit,
+                pid_gains=cfg.pid_gains,
             )
         else:
             cfg_cls, cls = PPO_CFG, PPO

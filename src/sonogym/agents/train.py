@@ -144,6 +144,10 @@ def train(
         from sonogym.agents.safety_filter import CostCritic
 
         models["cost_critic"] = CostCritic(task, adapter.layout, adapter.action_space, device)
+    elif algo == "ppo-lag":
+        from sonogym.agents.lagrangian import CostValue
+
+        models["cost_value"] = CostValue(task, adapter.layout, adapter.action_space, device)
     if checkpoint_interval is None:
         checkpoint_interval = params.rollouts * max(1, round(steps / 10 / params.rollouts))
     if write_interval is None:

@@ -107,6 +107,87 @@ def demo(
     run_demo(out, num_envs=envs, seed=seed, log=typer.echo)
 
 
+@app.command()
+def train(
+    task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
+    algo: Annotated[
+        str, typer.Option(help="ppo, a2c (all tasks); ppo-sf, ppo-lag (surgery).")
+    ] = "ppo",
+    envs: Annotated[int | None, typer.Option(help="Parallel envs (default 128).")] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="Env steps per env in total (default: the paper's).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of torch and the envs.")] = 0,
+    patients: Annotated[
+        list[str] | None,
+        typer.Option(help="Phantom seed or TotalSegmentator folder; repeatable (default 0)."),
+    ] = None,
+    simulator: Annotated[
+        str | None, typer.Option(help="Ultrasound preset: physical or sonogym.")
+    ] = None,
+    obs_downsample: Annotated[
+        int | None, typer.Option(help="Average-pool image observations by this factor.")
+    ] = None,
+    phantom_spacing: Annotated[
+        float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
+    ] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+    out: Annotated[
+        Path | None, typer.Option(help="Run directory (default runs/<task>-<algo>-s<seed>).")
+    ] = None,
+    resume: Annotated[bool, typer.Option(help="Continue from the run's last checkpoint.")] = False,
+) -> None:
+    """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory."""
+    from sonogym.agents.configs import check_supported
+    from sonogym.agents.train import train as run_train
+
+    try:
+        check_supported(task, algo)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
+    env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
+    try:
+        res = run_train(
+            task,
+            algo,
+            envs=envs,
+            steps=steps,
+            seed=seed,
+            out=out,
+            patients=pats,
+            simulator=simulator,
+            obs_downsample=obs_downsample,
+            env_kwargs=env_kwargs,
+            device=device,
+            resume=resume,
+        )
+    except FileExistsError as e:
+        raise typer.BadParameter(str(e)) from None
+    typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
+
+
+@app.command("eval")
+def eval_(
+    run: Annotated[Path, typer.Option(help="Run directory written by `sonogym train`.")],
+    trials: Annotated[int, typer.Option(help="Episodes per controller.")] = 100,
+    envs: Annotated[
+        int | None, typer.Option(help="Parallel envs (default min(16, trials)).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the evaluation starts.")] = 1000,
+    device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+) -> None:
+    """Evaluate a run's policy, the task's expert and a random policy; print and save the table."""
+    from sonogym.evaluation.rl_eval import evaluate_run, format_table
+
+    try:
+        results = evaluate_run(run, trials=trials, envs=envs, seed=seed, device=device)
+    except FileNotFoundError as e:
+        raise typer.BadParameter(str(e)) from None
+    typer.echo(format_table(results), nl=False)
+    typer.echo(f"wrote {run}/eval.md and eval.json")
+
+
 def main() -> None:
     app()
 

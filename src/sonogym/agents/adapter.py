@@ -1,0 +1,223 @@
+"""skrl adapter over a ``TorchVectorEnv``: tensors stay on the env's device.
+
+skrl's agents and memories work on flat ``(N, D)`` float observations. ``SkrlEnvAdapter``
+flattens our observations with a fixed, documented ``ObsLayout``; the networks un-flatten them
+with the same layout:
+
+* a Dict observation is flattened key by key in **sorted key order** (skrl's own
+  ``flatten_tensorized_space`` order, so skrl's space utilities agree), each entry reshaped to
+  ``(N, prod(shape))`` and cast to float32;
+* optional per-key ``obs_scales`` multiply an entry before flattening (unitless factors);
+* optional ``obs_downsample`` F average-pools 2-D image entries (the last two axes, e.g. the
+  navigation image (1, 200, 150) -> (1, 100, 75) for F = 2) before storage, so the rollout
+  memory shrinks by F^2 as well as the network's input.
+
+Rewards come back as ``(N, 1)`` float32, ``terminated`` / ``truncated`` as ``(N, 1)`` bool.
+
+Autoreset: our envs reset ended episodes inside ``step`` (SAME_STEP), so the adapter never
+resets per env; ``reset()`` resets all envs only on its first call and afterwards returns the
+latest observations (as skrl's Isaac Lab wrapper does). The true final observation of an ended
+episode is ``info["final_obs"]``; ``final_observations(info, next_obs)`` returns the flat
+observations with those substituted, which time-limit bootstrapping needs (the value of the
+state the episode was truncated in, not of the next episode's first state).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from sonogym.envs.base import TorchVectorEnv
+
+#: Dict keys (or the single Box observation) treated as images by ``obs_downsample``.
+IMAGE_KEYS = ("us", "ct", "labels", "image", "_")
+
+
+@dataclass(frozen=True)
+class ObsLayout:
+    """Where each observation entry lies in the flat vector.
+
+    ``keys``: entry names in flattening order (sorted; ``("_",)`` for a Box observation);
+    ``shapes``: per-entry shapes after downsampling (without the batch axis).
+    """
+
+    keys: tuple[str, ...]
+    shapes: tuple[tuple[int, ...], ...]
+
+    @property
+    def sizes(self) -> tuple[int, ...]:
+        return tuple(math.prod(s) for s in self.shapes)
+
+    @property
+    def size(self) -> int:
+        """Length of the flat observation vector."""
+        return sum(self.sizes)
+
+    def shape(self, key: str) -> tuple[int, ...]:
+        try:
+            return self.shapes[self.keys.index(key)]
+        except ValueError:
+            raise KeyError(f"observation has no entry {key!r}; entries: {self.keys}") from None
+
+    def unflatten(self, flat: torch.Tensor) -> dict[str, torch.Tensor]:
+        """(B, size) -> {key: (B, *shape)} (views, no copy)."""
+        if flat.shape[-1] != self.size:
+            raise ValueError(
+                f"flat observations must have {self.size} features, got {flat.shape[-1]}"
+            )
+        parts = torch.split(flat, self.sizes, dim=-1)
+        return {
+            k: p.reshape(*flat.shape[:-1], *s)
+            for k, p, s in zip(self.keys, parts, self.shapes, strict=True)
+        }
+
+
+def _downsampled(shape: tuple[int, ...], factor: int) -> tuple[int, ...]:
+    if factor == 1 or len(shape) < 2:
+        return shape
+    h, w = shape[-2], shape[-1]
+    if h // factor < 1 or w // factor < 1:
+        raise ValueError(f"obs_downsample {factor} is too large for an image of {shape}")
+    return (*shape[:-2], h // factor, w // factor)
+
+
+def obs_layout(space: gym.Space, obs_downsample: int = 1) -> ObsLayout:
+    """Layout of a single-env observation space (Box or Dict of Boxes)."""
+    if isinstance(space, gym.spaces.Dict):
+        keys = tuple(sorted(space.spaces))
+        shapes = []
+        for k in keys:
+            s = tuple(space[k].shape)
+            shapes.append(_downsampled(s, obs_downsample) if k in IMAGE_KEYS else s)
+        return ObsLayout(keys, tuple(shapes))
+    if isinstance(space, gym.spaces.Box):
+        s = tuple(space.shape)
+        return ObsLayout(("_",), (_downsampled(s, obs_downsample) if len(s) >= 2 else s,))
+    raise TypeError(f"unsupported observation space {space!r}: use a Box or a Dict of Boxes")
+
+
+class SkrlEnvAdapter:
+    """A ``TorchVectorEnv`` seen as a skrl 2.x single-agent vectorized env (``Wrapper`` API).
+
+    Args:
+        env: the batched env (SAME_STEP autoreset).
+        obs_downsample: integer factor F >= 1 for 2-D image entries (average pooling).
+        obs_scales: per-entry multiplicative factors (unitless), e.g. ``{"path_length": 1.0}``.
+        seed: seed of the first reset.
+    """
+
+    def __init__(
+        self,
+        env: TorchVectorEnv,
+        obs_downsample: int = 1,
+        obs_scales: dict[str, float] | None = None,
+        seed: int | None = None,
+    ) -> None:
+        if int(obs_downsample) != obs_downsample or obs_downsample < 1:
+            raise ValueError(f"obs_downsample must be an integer >= 1, got {obs_downsample}")
+        self._env = env
+        self.obs_downsample = int(obs_downsample)
+        self.layout = obs_layout(env.single_observation_space, self.obs_downsample)
+        self.obs_scales = dict(obs_scales or {})
+        unknown = sorted(set(self.obs_scales) - set(self.layout.keys))
+        if unknown:
+            raise ValueError(
+                f"obs_scales names unknown entries {unknown}; entries: {self.layout.keys}"
+            )
+        self._seed = seed
+        self._observations: torch.Tensor | None = None
+        self._info: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ skrl Wrapper API
+    @property
+    def unwrapped(self) -> TorchVectorEnv:
+        return self._env
+
+    @property
+    def device(self) -> torch.device:
+        return self._env.device
+
+    @property
+    def num_envs(self) -> int:
+        return self._env.num_envs
+
+    @property
+    def num_agents(self) -> int:
+        return 1
+
+    @property
+    def observation_space(self) -> gym.spaces.Box:
+        """Flat float32 Box of ``layout.size`` features (one env)."""
+        return gym.spaces.Box(-np.inf, np.inf, (self.layout.size,), np.float32)
+
+    @property
+    def state_space(self) -> None:
+        return None
+
+    @property
+    def action_space(self) -> gym.spaces.Box:
+        return self._env.single_action_space
+
+    def reset(self) -> tuple[torch.Tensor, dict[str, Any]]:
+        """Reset every env on the first call; later calls return the latest observations."""
+        if self._observations is None:
+            obs, self._info = self._env.reset(seed=self._seed)
+            self._observations = self.flatten(obs)
+        return self._observations, self._info
+
+    def step(
+        self, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        """Step all envs: obs (N, D), reward (N, 1), terminated (N, 1), truncated (N, 1), info."""
+        with torch.no_grad():
+            obs, reward, terminated, truncated, info = self._env.step(actions)
+        self._observations = self.flatten(obs)
+        self._info = info
+        return (
+            self._observations,
+            reward.to(torch.float32).view(-1, 1),
+            terminated.view(-1, 1),
+            truncated.view(-1, 1),
+            info,
+        )
+
+    def state(self) -> None:
+        return None
+
+    def render(self, *args, **kwargs) -> Any:
+        return self._env.render()
+
+    def close(self) -> None:
+        self._env.close()
+
+    # ------------------------------------------------------------------ observations
+    def flatten(self, obs: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
+        """Env observations (Box tensor or Dict of tensors) -> (N, layout.size) float32."""
+        entries = obs if isinstance(obs, dict) else {"_": obs}
+        parts = []
+        for key, shape in zip(self.layout.keys, self.layout.shapes, strict=True):
+            x = entries[key].to(torch.float32)
+            if tuple(x.shape[1:]) != shape:  # downsampled image entry
+                n = x.shape[0]
+                x = F.avg_pool2d(x.reshape(-1, 1, *x.shape[-2:]), self.obs_downsample)
+                x = x.reshape(n, *shape)
+            scale = self.obs_scales.get(key)
+            if scale is not None:
+                x = x * scale
+            parts.append(x.reshape(x.shape[0], -1))
+        return torch.cat(parts, dim=-1)
+
+    def final_observations(self, info: dict[str, Any], next_obs: torch.Tensor) -> torch.Tensor:
+        """``next_obs`` with the true final observations of the envs whose episode just ended
+        (``info["final_obs"]``, SAME_STEP autoreset) substituted: the s_{t+1} of each
+        transition, for bootstrapping."""
+        if "final_obs" not in info:
+            return next_obs
+        mask = info["_final_obs"].to(next_obs.device)
+        return torch.where(mask.view(-1, 1), self.flatten(info["final_obs"]), next_obs)

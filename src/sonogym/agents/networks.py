@@ -1,0 +1,171 @@
+"""Per-task shared-trunk actor-critic networks (skrl models), as the paper and reference use.
+
+One module holds one encoder ("trunk") with two heads: a Gaussian policy head (mean, plus a
+state-independent log-std parameter initialised at 0, clipped to [-20, 2] by skrl; actions are
+not clipped, the env clips them) and a scalar value head. skrl calls the same object as
+``models["policy"]`` and ``models["value"]`` (reference: ``separate: False``).
+
+Inputs are the adapter's flat observations; ``ObsLayout`` un-flattens them. Architectures
+(reference_implementation.md §7.1; ReLU convs without padding, ELU MLPs):
+
+* navigation: image (1, H, W) -> conv 32 k8 s2, 64 k4 s2, 64 k4 s2, 64 k3 s1 -> flatten ->
+  [512, 256, 128]. With the adapter's ``obs_downsample`` F the image is (1, H/F, W/F) and the
+  flatten size follows (F <= 2 for the 200 x 150 image; larger F leave no room for 4 convs).
+* reconstruction: ``reconstruction`` (40, 40, 40) as 40 channels of 40 x 40 images -> conv
+  32 k8 s2, 64 k4 s2, 64 k3 s1 -> 64*5*5; ``path_length`` -> [128, 128, 64]; concat ->
+  [512, 256, 128]. 2-D convolutions over 40 channels (the reference's choice) rather than 3-D:
+  a 3-D k8 conv over 40^3 costs ~40x the multiply-adds of the 2-D one for the same receptive
+  field in the scan plane, and the volume's axes are probe-aligned (depth = channels), so
+  the 2-D trunk already sees every voxel.
+* surgery: ``image`` (5, 50, 37) -> conv 32 k8 s2, 64 k4 s2, 64 k3 s1 -> 64*8*4; ``pose``
+  split into position (3) -> [128, 128, 64] and quaternion (4) -> [128, 128, 64]; concat ->
+  [512, 256, 128].
+
+Vector-only observations (``obs_mode="state"``) get one [128, 128, 64] MLP per entry.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import torch
+from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
+from torch import nn
+
+from sonogym.agents.adapter import ObsLayout
+
+#: (out_channels, kernel, stride) per conv layer.
+CONV4 = ((32, 8, 2), (64, 4, 2), (64, 4, 2), (64, 3, 1))
+CONV3 = ((32, 8, 2), (64, 4, 2), (64, 3, 1))
+VECTOR_MLP = (128, 128, 64)
+TRUNK_MLP = (512, 256, 128)
+TASK_CONVS = {"navigation": CONV4, "reconstruction": CONV3, "surgery": CONV3}
+
+
+def mlp(in_features: int, sizes: tuple[int, ...]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for out in sizes:
+        layers += [nn.Linear(in_features, out), nn.ELU()]
+        in_features = out
+    return nn.Sequential(*layers)
+
+
+def conv_stack(in_shape: tuple[int, int, int], spec) -> tuple[nn.Sequential, int]:
+    """ReLU conv stack over (C, H, W) inputs -> (module, flattened output size)."""
+    layers: list[nn.Module] = []
+    c = in_shape[0]
+    for out, k, s in spec:
+        layers += [nn.Conv2d(c, out, k, s), nn.ReLU()]
+        c = out
+    layers.append(nn.Flatten())
+    net = nn.Sequential(*layers)
+    h, w = in_shape[1:]
+    for _, k, s in spec:
+        h, w = (h - k) // s + 1, (w - k) // s + 1
+        if h < 1 or w < 1:
+            raise ValueError(
+                f"image of shape {in_shape} is too small for the {len(spec)}-conv trunk "
+                f"(kernels {[k for _, k, _ in spec]}); use a smaller obs_downsample"
+            )
+    return net, c * h * w
+
+
+class Encoder(nn.Module):
+    """Per-entry branches (conv for images, MLP for vectors) concatenated into TRUNK_MLP."""
+
+    def __init__(self, task: str, layout: ObsLayout) -> None:
+        super().__init__()
+        if task not in TASK_CONVS:
+            raise ValueError(f"unknown task {task!r}; known tasks: {sorted(TASK_CONVS)}")
+        self.layout = layout
+        self.branches = nn.ModuleDict()
+        self._split_pose = task == "surgery" and "pose" in layout.keys
+        total = 0
+        for key, shape in zip(layout.keys, layout.shapes, strict=True):
+            if len(shape) == 3:
+                net, n = conv_stack(shape, TASK_CONVS[task])
+            elif len(shape) == 1 and key == "pose" and self._split_pose:
+                net = nn.ModuleDict({"pos": mlp(3, VECTOR_MLP), "quat": mlp(4, VECTOR_MLP)})
+                n = 2 * VECTOR_MLP[-1]
+            elif len(shape) == 1:
+                net, n = mlp(shape[0], VECTOR_MLP), VECTOR_MLP[-1]
+            else:
+                raise ValueError(f"observation entry {key!r} has unsupported shape {shape}")
+            self.branches[_name(key)] = net
+            total += n
+        self.trunk = mlp(total, TRUNK_MLP)
+        self.out_features = TRUNK_MLP[-1]
+
+    def forward(self, flat: torch.Tensor) -> torch.Tensor:
+        obs = self.layout.unflatten(flat)
+        feats = []
+        for key in self.layout.keys:
+            net, x = self.branches[_name(key)], obs[key]
+            if isinstance(net, nn.ModuleDict):  # surgery pose: position (m) + quaternion
+                feats += [net["pos"](x[:, :3]), net["quat"](x[:, 3:])]
+            else:
+                feats.append(net(x))
+        return self.trunk(torch.cat(feats, dim=-1))
+
+
+def _name(key: str) -> str:
+    return "obs" if key == "_" else key
+
+
+class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
+    """Gaussian policy (role "policy") and value (role "value") over one shared ``Encoder``.
+
+    The trunk's features of the last policy call are reused by the value call on the same
+    observation tensor (skrl calls policy then value on the same inputs), so a PPO step runs
+    the encoder once.
+    """
+
+    def __init__(
+        self,
+        task: str,
+        layout: ObsLayout,
+        action_space: gym.spaces.Box,
+        device: str | torch.device | None = None,
+    ) -> None:
+        obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
+        Model.__init__(self, observation_space=obs_space, action_space=action_space, device=device)
+        GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, role="policy")
+        DeterministicMixin.__init__(self, clip_actions=False, role="value")
+        self.encoder = Encoder(task, layout)
+        n_act = int(action_space.shape[0])
+        self.mean_head = nn.Linear(self.encoder.out_features, n_act)
+        self.log_std = nn.Parameter(torch.zeros(n_act))
+        self.value_head = nn.Linear(self.encoder.out_features, 1)
+        self._cache: tuple[torch.Tensor, bool, torch.Tensor] | None = None
+        self.to(self.device)
+
+    def act(self, inputs, *, role: str = ""):
+        if role == "policy":
+            return GaussianMixin.act(self, inputs, role=role)
+        if role == "value":
+            return DeterministicMixin.act(self, inputs, role=role)
+        raise ValueError(f"role must be 'policy' or 'value', got {role!r}")
+
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        grad = torch.is_grad_enabled()
+        if self._cache is not None and self._cache[0] is obs and self._cache[1] == grad:
+            return self._cache[2]
+        feats = self.encoder(obs)
+        self._cache = (obs, grad, feats)
+        return feats
+
+    def compute(self, inputs, role: str = ""):
+        obs = inputs["observations"]
+        if role == "policy":
+            feats = self.features(obs)
+            return self.mean_head(feats), {"log_std": self.log_std.expand(obs.shape[0], -1)}
+        feats = self.features(obs)
+        self._cache = None  # value is the last call on these inputs
+        return self.value_head(feats), {}
+
+
+def make_models(
+    task: str, layout: ObsLayout, action_space: gym.spaces.Box, device=None
+) -> dict[str, Model]:
+    """skrl ``models`` dict: the same ``SharedActorCritic`` as "policy" and "value"."""
+    net = SharedActorCritic(task, layout, action_space, device)
+    return {"policy": net, "value": net}

@@ -1,0 +1,251 @@
+"""Train a skrl agent (PPO or A2C) on a SonoGym task: ``train(task, algo, ...)``.
+
+Writes into ``out/``:
+
+* ``config.json``: the fully resolved run config (task config, algorithm parameters, env
+  options, versions), written before training starts;
+* TensorBoard event files (skrl's writer: losses, rewards, learning rate; plus the tasks'
+  episode metrics under ``Episode / <metric>``);
+* ``checkpoints/agent_<t>.pt``: skrl agent checkpoints (policy = value module, optimizer,
+  value standardiser) after t env steps per env; ``agent_0.pt`` holds the initial weights, the
+  newest one the final policy (skrl also keeps ``best_agent.pt``, best mean return).
+
+The loop is skrl's sequential trainer loop written out, for one reason: with SAME_STEP
+autoreset the observation after a truncation is the next episode's first one, so the loop hands
+skrl the true final observation (``info["final_obs"]``) as ``next_observations`` for
+time-limit bootstrapping, and the reset one as the next step's input.
+
+``resume=True`` continues from the newest checkpoint in ``out/checkpoints`` (weights,
+optimizer, standardiser; the envs restart from a fresh reset and the rollout memory is empty).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sonogym.agents.adapter import SkrlEnvAdapter
+from sonogym.agents.configs import TaskRLConfig, build_agent, check_supported, task_config
+from sonogym.agents.configs import to_jsonable as _jsonable
+from sonogym.agents.networks import make_models
+from sonogym.envs import TASKS
+
+_CKPT = re.compile(r"agent_(\d+)\.pt$")
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    out: Path  # run directory
+    checkpoint: Path  # the final checkpoint
+    steps: int  # env steps per env done in total (including resumed ones)
+
+
+def make_env(cfg: TaskRLConfig, num_envs: int, device: str | torch.device):
+    """The task's batched env with ``cfg.env_kwargs`` (device set here)."""
+    module = importlib.import_module(TASKS[cfg.env_id])
+    cls = getattr(module, cfg.env_id.split("/")[1].split("-")[0] + "Env")
+    return cls(num_envs=num_envs, **{**cfg.env_kwargs, "device": str(device)})
+
+
+def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
+    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
+    found = []
+    for p in (Path(out) / "checkpoints").glob("agent_*.pt"):
+        m = _CKPT.search(p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    if not found:
+        return None
+    t, p = max(found)
+    return p, t
+
+
+def train(
+    task: str,
+    algo: str,
+    envs: int | None = None,
+    steps: int | None = None,
+    seed: int = 0,
+    out: str | Path | None = None,
+    *,
+    patients: tuple | None = None,
+    simulator: str | None = None,
+    obs_downsample: int | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    device: str = "cpu",
+    resume: bool = False,
+    checkpoint_interval: int | None = None,
+    write_interval: int | None = None,
+    progress: bool = True,
+) -> TrainResult:
+    """Train ``algo`` on ``task`` for ``steps`` env steps per env (default: the paper's).
+
+    Args:
+        envs: parallel envs (default 128, paper).
+        steps: env steps per env in total, resumed ones included.
+        seed: seeds torch and the envs' first reset.
+        out: run directory (default ``runs/<task>-<algo>-s<seed>``).
+        patients, simulator, obs_downsample, env_kwargs: override the task config's env options.
+        resume: continue from the newest checkpoint in ``out``; without it an ``out`` that holds
+            checkpoints is refused.
+        checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
+            update boundaries; TensorBoard once per update).
+        progress: show a tqdm bar with the ETA.
+    """
+    from skrl.trainers.torch import SequentialTrainerCfg
+    from tqdm import tqdm
+
+    check_supported(task, algo)
+    base = task_config(task)
+    kw = dict(base.env_kwargs)
+    kw.update(env_kwargs or {})
+    if patients is not None:
+        kw["patients"] = tuple(patients)
+    if simulator is not None:
+        kw["simulator"] = simulator
+    cfg = dataclasses.replace(
+        base,
+        num_envs=envs or base.num_envs,
+        timesteps=steps or base.timesteps,
+        obs_downsample=obs_downsample or base.obs_downsample,
+        env_kwargs=kw,
+    )
+    params = cfg.params(algo)
+    steps = cfg.timesteps
+    out = Path(out or f"runs/{task}-{algo}-s{seed}")
+    found = latest_checkpoint(out)
+    if found and not resume:
+        raise FileExistsError(
+            f"{out} already holds checkpoints ({found[0].name}); pass resume=True (--resume) "
+            "to continue that run, or choose another output directory"
+        )
+    if resume and (out / "config.json").exists():
+        old = json.loads((out / "config.json").read_text())
+        if (old["task"], old["algo"]) != (task, algo):
+            raise ValueError(
+                f"{out} is a {old['task']}/{old['algo']} run; cannot resume it as {task}/{algo}"
+            )
+    start = found[1] if (found and resume) else 0
+    if start >= steps:
+        raise ValueError(f"{out} already has {start} steps >= the requested {steps}")
+
+    torch.manual_seed(seed)
+    env = make_env(cfg, cfg.num_envs, device)
+    adapter = SkrlEnvAdapter(env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start)
+    models = make_models(task, adapter.layout, adapter.action_space, device)
+    if algo == "ppo-sf":
+        from sonogym.agents.safety_filter import CostCritic
+
+        models["cost_critic"] = CostCritic(task, adapter.layout, adapter.action_space, device)
+    elif algo == "ppo-lag":
+        from sonogym.agents.lagrangian import CostValue
+
+        models["cost_value"] = CostValue(task, adapter.layout, adapter.action_space, device)
+    if checkpoint_interval is None:
+        checkpoint_interval = params.rollouts * max(1, round(steps / 10 / params.rollouts))
+    if write_interval is None:
+        write_interval = params.rollouts
+    agent = build_agent(
+        cfg,
+        algo,
+        models,
+        adapter.observation_space,
+        adapter.action_space,
+        cfg.num_envs,
+        out,
+        device=device,
+        write_interval=write_interval,
+        checkpoint_interval=checkpoint_interval,
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    resolved = {
+        "task": task,
+        "algo": algo,
+        "seed": seed,
+        "num_envs": cfg.num_envs,
+        "steps": steps,
+        "device": str(device),
+        "env_id": cfg.env_id,
+        "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
+        "action_space": {
+            "low": adapter.action_space.low.tolist(),
+            "high": adapter.action_space.high.tolist(),
+        },
+        "checkpoint_interval": checkpoint_interval,
+        "write_interval": write_interval,
+        "resumed_from": start,
+        "task_config": _jsonable(cfg),
+        "algo_params": _jsonable(params),
+        "versions": _versions(),
+    }
+    (out / "config.json").write_text(json.dumps(_jsonable(resolved), indent=2))
+
+    agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
+    if found and resume:
+        agent.load(str(found[0]))
+    else:
+        (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+        agent.save(str(out / "checkpoints" / "agent_0.pt"))  # the initial weights
+    agent.enable_training_mode(True)
+    obs, _ = adapter.reset()
+    bar = tqdm(total=steps, initial=start, disable=not progress, unit="step", desc=f"{task}/{algo}")
+    for t in range(start, steps):
+        agent.pre_interaction(timestep=t, timesteps=steps)
+        with torch.no_grad():
+            actions, _ = agent.act(obs, None, timestep=t, timesteps=steps)
+            next_obs, reward, terminated, truncated, info = adapter.step(actions)
+            agent.record_transition(
+                observations=obs,
+                states=None,
+                actions=actions,
+                rewards=reward,
+                next_observations=adapter.final_observations(info, next_obs),
+                next_states=None,
+                terminated=terminated,
+                truncated=truncated,
+                infos=info,
+                timestep=t,
+                timesteps=steps,
+            )
+            _track_episode_metrics(agent, info)
+        agent.post_interaction(timestep=t, timesteps=steps)
+        obs = next_obs
+        bar.update(1)
+    bar.close()
+    final = out / "checkpoints" / f"agent_{steps}.pt"
+    if not final.exists():
+        final.parent.mkdir(parents=True, exist_ok=True)
+        agent.save(str(final))
+    if getattr(agent, "writer", None) is not None:
+        agent.writer.flush()
+    env.close()
+    return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+def _track_episode_metrics(agent, info: dict[str, Any]) -> None:
+    metrics = info.get("final_info")
+    if not metrics:
+        return
+    for k, v in metrics.items():
+        if k == "env_ids" or not isinstance(v, torch.Tensor) or v.numel() == 0:
+            continue
+        agent.track_data(f"Episode / {k}", v.float().mean().item())
+
+
+def _versions() -> dict[str, str]:
+    import skrl
+
+    import sonogym
+
+    return {
+        "sonogym": getattr(sonogym, "__version__", "unknown"),
+        "skrl": skrl.__version__,
+        "torch": torch.__version__,
+    }

@@ -1,0 +1,78 @@
+"""Per-task actor-critic networks: forward shapes and the shared encoder."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from sonogym.agents.adapter import ObsLayout
+from sonogym.agents.networks import SharedActorCritic, make_models
+
+LAYOUTS = {
+    "navigation": (ObsLayout(("_",), ((1, 200, 150),)), 3),
+    "reconstruction": (ObsLayout(("path_length", "reconstruction"), ((1,), (40, 40, 40))), 4),
+    "surgery": (ObsLayout(("image", "pose"), ((5, 50, 37), (7,))), 6),
+}
+# conv output sizes the reference lists (reference_implementation.md §7.1)
+FLAT = {"navigation": 64 * 20 * 14, "reconstruction": 64 * 5 * 5, "surgery": 64 * 8 * 4}
+
+
+def _box(n):
+    return gym.spaces.Box(-2.0, 2.0, (n,), np.float32)
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_forward_shapes_and_shared_encoder(task):
+    torch.manual_seed(0)
+    layout, n_act = LAYOUTS[task]
+    models = make_models(task, layout, _box(n_act))
+    policy, value = models["policy"], models["value"]
+    assert policy is value  # one module, one encoder
+    convs = [m for m in policy.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert len(convs) == (4 if task == "navigation" else 3)
+    first_linear = policy.encoder.trunk[0]
+    vec_feats = first_linear.in_features - FLAT[task]
+    assert vec_feats == {"navigation": 0, "reconstruction": 64, "surgery": 128}[task]
+    obs = torch.rand(5, layout.size)
+    actions, out = policy.act({"observations": obs}, role="policy")
+    assert actions.shape == (5, n_act)
+    assert out["log_prob"].shape == (5, 1) and out["mean_actions"].shape == (5, n_act)
+    values, _ = value.act({"observations": obs}, role="value")
+    assert values.shape == (5, 1)
+    # the value loss alone trains the shared conv encoder; the policy loss reaches it too
+    policy.zero_grad()
+    values.sum().backward()
+    assert convs[0].weight.grad is not None and convs[0].weight.grad.abs().sum() > 0
+    assert policy.mean_head.weight.grad is None
+    policy.zero_grad()
+    _, out = policy.act({"observations": obs}, role="policy")
+    out["mean_actions"].sum().backward()
+    assert convs[0].weight.grad.abs().sum() > 0
+
+
+def test_value_reuses_policy_features_only_for_same_tensor():
+    layout, n_act = LAYOUTS["surgery"]
+    net = SharedActorCritic("surgery", layout, _box(n_act))
+    calls = []
+    net.encoder.register_forward_hook(lambda *a: calls.append(1))
+    obs = torch.rand(3, layout.size)
+    net.act({"observations": obs}, role="policy")
+    v1, _ = net.act({"observations": obs}, role="value")
+    assert len(calls) == 1
+    v2, _ = net.act({"observations": obs.clone()}, role="value")
+    assert len(calls) == 2 and torch.allclose(v1, v2)
+
+
+def test_errors():
+    layout, _ = LAYOUTS["navigation"]
+    small = ObsLayout(("_",), ((1, 50, 37),))
+    with pytest.raises(ValueError, match="obs_downsample"):
+        make_models("navigation", small, _box(3))
+    with pytest.raises(ValueError, match="known tasks"):
+        make_models("nope", layout, _box(3))
+    with pytest.raises(ValueError, match="role"):
+        make_models("navigation", layout, _box(3))["policy"].act(
+            {"observations": torch.rand(1, layout.size)}, role="critic"
+        )

@@ -1,0 +1,149 @@
+"""Tiny training runs: weights change, checkpoints load, configs resolve, refusals are clear."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from sonogym.agents.checkpoint import load_policy
+from sonogym.agents.configs import SUPPORTED, TASK_CONFIGS, check_supported
+from sonogym.agents.train import train
+
+FAST_ENV = dict(phantom_spacing=0.002)
+
+
+def _tiny(task, algo, out, steps, **kw):
+    torch.set_num_threads(1)
+    return train(
+        task,
+        algo,
+        envs=2,
+        steps=steps,
+        seed=0,
+        out=out,
+        patients=(0,),
+        obs_downsample=2 if task == "navigation" else 1,
+        env_kwargs=dict(FAST_ENV, episode_length=20),
+        progress=False,
+        **kw,
+    )
+
+
+def _weights_changed(run, t):
+    first = torch.load(run / "checkpoints" / "agent_0.pt", weights_only=False)["policy"]
+    last = torch.load(run / "checkpoints" / f"agent_{t}.pt", weights_only=False)["policy"]
+    assert first.keys() == last.keys()
+    changed = [k for k in first if not torch.equal(first[k], last[k])]
+    # the shared encoder and both heads moved
+    assert any(k.startswith("encoder.branches") for k in changed)
+    assert "mean_head.weight" in changed and "value_head.weight" in changed
+    return changed
+
+
+def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
+    run = tmp_path / "nav"
+    res = _tiny("navigation", "ppo", run, steps=64)
+    assert res.checkpoint == run / "checkpoints" / "agent_64.pt" and res.checkpoint.exists()
+    _weights_changed(run, 64)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["task_config"]["ppo"]["rollouts"] == 32
+    assert cfg["task_config"]["ppo"]["time_limit_bootstrap"] is True
+    assert cfg["task_config"]["obs_downsample"] == 2 and cfg["num_envs"] == 2
+    assert cfg["task_config"]["env_kwargs"]["patients"] == [0]
+    events = list(run.glob("events.out.tfevents.*"))
+    assert events and events[0].stat().st_size > 0
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    assert "Loss / Policy loss" in tags and "Episode / position_error_mm" in tags
+
+    policy, loaded_cfg = load_policy(run)
+    assert loaded_cfg["task"] == "navigation"
+    x = torch.rand(3, policy.encoder.layout.size)
+    _, out = policy.act({"observations": x}, role="policy")
+    assert out["mean_actions"].shape == (3, 3)
+    saved = torch.load(res.checkpoint, weights_only=False)["policy"]
+    assert torch.equal(policy.mean_head.weight, saved["mean_head.weight"])
+
+    with pytest.raises(FileExistsError, match="resume"):
+        _tiny("navigation", "ppo", run, steps=96)
+    res2 = _tiny("navigation", "ppo", run, steps=96, resume=True)
+    assert res2.checkpoint.name == "agent_96.pt"
+    assert json.loads((run / "config.json").read_text())["resumed_from"] == 64
+    with pytest.raises(ValueError, match="cannot resume"):
+        _tiny("navigation", "a2c", run, steps=128, resume=True)
+
+
+@pytest.mark.parametrize(
+    "task,algo,steps",
+    [
+        ("navigation", "a2c", 32),
+        ("reconstruction", "ppo", 32),
+        ("reconstruction", "a2c", 64),
+        ("surgery", "ppo", 32),
+        ("surgery", "a2c", 64),
+    ],
+)
+def test_every_pair_updates_weights(tmp_path, task, algo, steps):
+    res = _tiny(task, algo, tmp_path / f"{task}-{algo}", steps=steps)
+    assert res.checkpoint.exists()
+    _weights_changed(res.out, steps)
+    policy, _ = load_policy(res.out)
+    assert policy.mean_head.out_features == {"reconstruction": 4, "surgery": 6}.get(task, 3)
+
+
+def test_unsupported_pairs_are_refused(tmp_path):
+    with pytest.raises(ValueError, match=r"supported: \['ppo', 'a2c'\]"):
+        check_supported("navigation", "ppo-lag")
+    with pytest.raises(ValueError, match="known tasks"):
+        check_supported("nope", "ppo")
+    assert SUPPORTED["surgery"] == ("ppo", "a2c", "ppo-sf", "ppo-lag")
+    with pytest.raises(ValueError, match="not supported on reconstruction"):
+        _tiny("reconstruction", "ppo-sf", tmp_path / "sf", steps=16)
+
+
+def test_paper_hyperparameters():
+    nav, rec, sur = (TASK_CONFIGS[t] for t in ("navigation", "reconstruction", "surgery"))
+    assert (nav.ppo.rollouts, nav.ppo.learning_epochs, nav.ppo.mini_batches) == (32, 5, 32)
+    assert (rec.ppo.rollouts, rec.ppo.learning_epochs, rec.ppo.mini_batches) == (32, 3, 4)
+    assert (sur.ppo.rollouts, sur.ppo.learning_epochs, sur.ppo.mini_batches) == (16, 3, 32)
+    assert (nav.ppo.learning_rate, rec.ppo.learning_rate, sur.ppo.learning_rate) == (
+        1e-4,
+        3e-4,
+        1e-4,
+    )
+    assert (nav.ppo.value_clip, rec.ppo.value_clip, sur.ppo.value_clip) == (0.2, 0.1, 0.1)
+    assert [(c.a2c.rollouts, c.a2c.mini_batches) for c in (nav, rec, sur)] == [
+        (16, 32),
+        (64, 32),
+        (64, 4),
+    ]
+    for c in (nav, rec, sur):
+        assert c.num_envs == 128 and c.ppo.kl_threshold == 0.008 == c.a2c.kl_threshold
+        assert c.ppo.grad_norm_clip == 1.0 and c.ppo.ratio_clip == 0.2
+
+
+def test_cli_train_and_refusal(tmp_path):
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["train", "--task", "navigation", "--algo", "ppo-sf"])
+    flat = "".join(c for c in bad.output if c.isalnum() or c in "[]',:-")
+    assert bad.exit_code != 0 and "supported:['ppo','a2c']" in flat
+    out = tmp_path / "cli"
+    args = ["train", "--task", "surgery", "--algo", "ppo", "--envs", "2", "--steps", "16"]
+    args += ["--patients", "0", "--phantom-spacing", "2", "--out", str(out)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert (out / "checkpoints" / "agent_16.pt").exists()
+    assert json.loads((out / "config.json").read_text())["task_config"]["env_kwargs"] == {
+        "patients": [0],
+        "phantom_spacing": 0.002,
+    }

@@ -15,6 +15,11 @@ Autoreset mode is SAME_STEP: an env whose episode ends is reset inside the same 
 returned observation is the new episode's first, and the true final observation and the
 episode's metrics are in ``info["final_obs"]`` / ``info["final_info"]`` with masks
 ``info["_final_obs"]`` / ``info["_final_info"]`` (Gymnasium's convention, as tensors).
+
+``info`` describes the transition the step made (its cost, the state it reached). For an env
+reset inside the step that is the finished episode's last transition; the new episode's state
+appears in the next step's ``info`` (state-based experts act once on the old state, a no-op
+near their goal). ``reset()`` returns the new state in its ``info``.
 """
 
 from __future__ import annotations

@@ -33,7 +33,6 @@ class ProbeScene:
         device: torch device of everything.
         render: build the slicer and simulator now (else on first ``observe``).
         probe: the imaging geometry (default: the paper's 2-D linear probe).
-        tilt: whether commands carry a 4th component (tilt about x_U).
     """
 
     def __init__(

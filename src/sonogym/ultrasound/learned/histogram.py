@@ -52,6 +52,13 @@ class HistogramReference:
         x = window_ct(torch.as_tensor(ct_hu), window).reshape(1, -1)
         return cls(_cdf_at_edges(x, bins)[0].cpu(), window)
 
+    @classmethod
+    def fit_windowed(
+        cls, x: torch.Tensor, bins: int = 256, window: tuple[float, float] = CT_WINDOW_HU
+    ) -> HistogramReference:
+        """Reference from CT already windowed to [0, 1] with ``window``."""
+        return cls(_cdf_at_edges(x.reshape(1, -1).float(), bins)[0].cpu(), window)
+
     def state_dict(self) -> dict:
         return {"cdf": self.cdf.clone(), "window": list(self.window)}
 

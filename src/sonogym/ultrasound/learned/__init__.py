@@ -15,3 +15,12 @@ __all__ = [
     "random_down_up",
     "window_ct",
 ]
+
+
+def __getattr__(name: str):
+    # lazy: the simulator pulls in the slicer and training modules
+    if name == "LearnedSimulator":
+        from sonogym.ultrasound.learned.simulator import LearnedSimulator
+
+        return LearnedSimulator
+    raise AttributeError(name)

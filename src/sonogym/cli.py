@@ -228,6 +228,7 @@ def lb_train(
     width: Annotated[int, typer.Option(help="U-Net base width (paper: 64).")] = 16,
     depth: Annotated[int, typer.Option(help="U-Net down-sampling steps (paper: 6).")] = 4,
     batch_size: Annotated[int, typer.Option(help="Pairs per step.")] = 8,
+    disc_width: Annotated[int, typer.Option(help="PatchGAN base width (pix2pix: 64).")] = 32,
     device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
@@ -238,7 +239,7 @@ def lb_train(
     try:
         m = train_pix2pix(
             data, out, seed=seed, steps=steps, width=width, depth=depth,
-            batch_size=batch_size, device=device, progress=progress,
+            batch_size=batch_size, disc_width=disc_width, device=device, progress=progress,
         )  # fmt: skip
     except PairedDataError as e:
         raise typer.BadParameter(str(e)) from None

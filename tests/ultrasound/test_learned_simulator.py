@@ -54,15 +54,28 @@ def test_interchangeable_with_model_based(weights, slices):
         assert 0 <= float(img.min()) and float(img.max()) <= 1
 
 
-def test_deterministic_and_batch_independent(weights, slices):
-    sim = LearnedSimulator(weights[0])
+def _subset(s, i, j):
+    return type(s)(
+        s.ct[i:j], s.labels[i:j], s.origin[i:j], s.row_step[i:j], s.col_step[i:j],
+        s.seed[i:j], s.patient_index[i:j], s.probe,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("mode", ["first_batch", "per_image", "none"])
+def test_deterministic_and_batch_independent(weights, slices, mode):
+    sim = LearnedSimulator(weights[0], histogram=mode)
     a = sim.simulate(slices)
     assert torch.equal(a, sim.simulate(slices))
-    sub = type(slices)(
-        slices.ct[1:3], slices.labels[1:3], slices.origin[1:3], slices.row_step[1:3],
-        slices.col_step[1:3], slices.seed[1:3], slices.patient_index[1:3], slices.probe,
-    )  # fmt: skip
-    assert torch.allclose(sim.simulate(sub), a[1:3], atol=1e-6)
+    assert torch.allclose(sim.simulate(_subset(slices, 1, 3)), a[1:3], atol=1e-6)
+
+
+def test_fit_source_fixes_the_lut(weights, slices):
+    a = LearnedSimulator(weights[0])
+    a.fit_source(slices.ct)
+    b = LearnedSimulator(weights[0])
+    b.fit_source(slices.ct)
+    # the first call's batch no longer matters
+    assert torch.equal(a.simulate(_subset(slices, 0, 2)), b.simulate(slices)[0:2])
 
 
 def test_random_net_choice(weights, slices):

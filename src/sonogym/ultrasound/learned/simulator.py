@@ -5,9 +5,14 @@ Per call, on the N x E slices (batched, in chunks of ``batch_size`` images):
 2. resize bilinearly to the net's input size (that of its training pairs);
 3. optionally degrade by down/up-sampling (``degrade``; the reference uses 4 on 256 x 256);
 4. histogram-match to the net's training CT (``histogram``):
-   * ``"per_image"`` (default): one LUT per image, so an env's image never depends on the
-     other envs (the interface's batch independence);
-   * ``"first_batch"``: the reference's behaviour, one LUT from the first call's batch, reused;
+   * ``"first_batch"`` (default, the reference's behaviour): one population-level LUT, fitted
+     by :meth:`LearnedSimulator.fit_source` on a CT sample (e.g. the patients' volumes or a
+     batch of slices) or else from the first call's batch, then reused, so images are
+     deterministic and batch independent from then on. Training inputs are matched per batch,
+     i.e. at population level too;
+   * ``"per_image"``: one LUT per image (batch independent from the first call, but every
+     image gets the training histogram, so a slice without bone is stretched until some of it
+     reads as bone: use with care);
    * ``"none"``: no matching;
 5. run the generator (output in (0, 1), sigmoid), resize back, multiply by ``output_scale``
    (1; the reference's env used 0.1) and clamp to [0, 1].
@@ -53,7 +58,7 @@ class LearnedSimulator:
         device: torch.device | str = "cpu",
         seed: int = 0,
         change_interval: int = 100,
-        histogram: str = "per_image",
+        histogram: str = "first_batch",
         degrade: float = 1.0,
         output_scale: float = 1.0,
         batch_size: int = 256,
@@ -79,6 +84,13 @@ class LearnedSimulator:
         self._calls = 0
         self.net_index = 0
         self._frozen_luts: dict[int, torch.Tensor] = {}
+
+    def fit_source(self, ct_hu: torch.Tensor) -> None:
+        """Fix every net's histogram LUT from a sample of input CT (HU, any shape): the source
+        distribution the "first_batch" mode maps onto the training CT."""
+        ct = torch.as_tensor(ct_hu).to(self.device)
+        for i, hist in enumerate(self.hists):
+            self._frozen_luts[i] = hist.lut(window_ct(ct, hist.window).reshape(1, -1))
 
     @property
     def num_nets(self) -> int:

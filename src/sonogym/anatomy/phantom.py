@@ -157,9 +157,6 @@ def _spine(p: PhantomParams) -> list[_Vertebra]:
     }
     # Arc-length position of each body centre, L4 at 0, positive upward.
     arc = {"L4": 0.0}
-    for upper, lower in zip(_LEVELS[:-1][::-1], _LEVELS[1:][::-1], strict=True):
-        if lower == "S1" or upper == "L5":
-            pass
     order = _LEVELS
     i4 = order.index("L4")
     for i in range(i4 - 1, -1, -1):  # upward
@@ -384,7 +381,6 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
         yp = zf(zz, y_post, z)
         yc = yp + depth / 2
         taper = 1.0 + 0.06 * (-z / 125.0).clamp(-1, 1)
-        torso = superellipse2(x.expand(-1, y.shape[1], z.shape[2]), (y - yc), 1.0, 1.0, 2.3)
         torso = superellipse2(
             x / (half_w * taper), (y - yc) / (depth / 2), 1.0, 1.0, 2.3
         ) * torch.minimum(half_w * taper, torch.full_like(taper, depth / 2))

@@ -121,6 +121,28 @@ def axis_angle_from_matrix(r: torch.Tensor) -> torch.Tensor:
     return vec * scale
 
 
+def in_frame(
+    frame_pos: torch.Tensor,
+    frame_rot: torch.Tensor,
+    pos: torch.Tensor,
+    rot: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Express a pose given in a parent frame in the frame F = (frame_pos, frame_rot), both in
+    that parent: position R_F^T (pos - frame_pos) (..., 3) and rotation R_F^T rot (..., 3, 3)
+    (None when ``rot`` is None)."""
+    rf_t = frame_rot.transpose(-1, -2)
+    p = (rf_t @ (pos - frame_pos).unsqueeze(-1)).squeeze(-1)
+    return p, (None if rot is None else rf_t @ rot)
+
+
+def relative_pose(
+    frame_pos: torch.Tensor, frame_rot: torch.Tensor, pos: torch.Tensor, rot: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pose of a body in the frame F: position (..., 3) and axis-angle (..., 3)."""
+    p, r = in_frame(frame_pos, frame_rot, pos, rot)
+    return p, axis_angle_from_matrix(r)
+
+
 def make_pose(rot: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) rotation and (..., 3) position -> (..., 4, 4) homogeneous pose."""
     pose = torch.zeros(*pos.shape[:-1], 4, 4, dtype=pos.dtype, device=pos.device)

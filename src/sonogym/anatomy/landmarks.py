@@ -152,10 +152,10 @@ class _BoneLookup:
 
     def __init__(self, patient: Patient) -> None:
         self.labels = patient.labels.numpy()
-        self.sp, self.org = patient.spacing, patient.origin
+        self.to_voxel = patient.world_to_voxel_np
 
     def label_at(self, p: np.ndarray) -> np.ndarray:
-        ijk = np.rint((p - self.org) / self.sp).astype(int)
+        ijk = np.rint(self.to_voxel(p)).astype(int)
         inside = ((ijk >= 0) & (ijk < self.labels.shape)).all(-1)
         ijk = np.clip(ijk, 0, np.array(self.labels.shape) - 1)
         out = self.labels[ijk[..., 0], ijk[..., 1], ijk[..., 2]]

@@ -42,7 +42,7 @@ from gymnasium import spaces
 
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.scene import ProbeScene
-from sonogym.geometry import axis_angle_from_matrix, wrap_angle
+from sonogym.geometry import relative_pose, wrap_angle
 
 OBS_MODES = ("us", "ct", "labels", "state")
 
@@ -89,15 +89,6 @@ def navigation_reward(
     mm here, w1 is per mm), q axis-angle in rad. Shapes (N, 3) -> (N,)."""
     dp = (p_before.norm(dim=-1) - p_after.norm(dim=-1)) * 1e3
     return w1 * dp + q_before.norm(dim=-1) - q_after.norm(dim=-1)
-
-
-def relative_pose(
-    goal_pos: torch.Tensor, goal_rot: torch.Tensor, pos: torch.Tensor, rot: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pose of {U} in {G}: position (N, 3) and axis-angle (N, 3)."""
-    rg_t = goal_rot.transpose(-1, -2)
-    p = (rg_t @ (pos - goal_pos).unsqueeze(-1)).squeeze(-1)
-    return p, axis_angle_from_matrix(rg_t @ rot)
 
 
 def navigation_expert(

@@ -89,7 +89,7 @@ from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.scene import ProbeScene
-from sonogym.geometry import axis_angle_from_matrix, normalize, wrap_angle
+from sonogym.geometry import normalize, relative_pose, wrap_angle
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
 
 OBS_MODES = ("reconstruction", "state")
@@ -413,9 +413,9 @@ class ReconstructionEnv(TorchVectorEnv):
     def state(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Pose of {U} in the vertebra frame {V}: (K, 6) position (m) and axis-angle (rad)."""
         sl = slice(None) if env_ids is None else env_ids
-        rv_t = self._v_rot[sl].transpose(-1, -2)
-        p = (rv_t @ (self.scene.probe_pos[sl] - self._v_pos[sl]).unsqueeze(-1)).squeeze(-1)
-        q = axis_angle_from_matrix(rv_t @ self.scene.probe_rot[sl])
+        p, q = relative_pose(
+            self._v_pos[sl], self._v_rot[sl], self.scene.probe_pos[sl], self.scene.probe_rot[sl]
+        )
         return torch.cat([p, q], -1).float()
 
     def probe_frame_reconstruction(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:

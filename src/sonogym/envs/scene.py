@@ -163,17 +163,22 @@ class ProbeScene:
         return self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
 
     def observe(self, mode: str, env_ids: torch.Tensor | None = None) -> torch.Tensor:
-        """Images of the reached poses: "us" (N, E, H, W) in [0, 1], "ct" windowed to [0, 1],
-        "labels" uint8."""
-        s = self.slices(env_ids)
-        if mode == "us":
-            return self.simulator.simulate(s).float()
-        if mode == "ct":
-            lo, hi = CT_WINDOW
-            return ((s.ct - lo) / (hi - lo)).clamp(0, 1)
-        if mode == "labels":
-            return s.labels
-        raise ValueError(f"unknown image mode {mode!r}")
+        """Images of the reached poses (see ``image_observation``)."""
+        return image_observation(self.slices(env_ids), mode, self)
+
+
+def image_observation(slices, mode: str, scene) -> torch.Tensor:
+    """An image observation of sliced CT + labels: "us" the ultrasound simulated by
+    ``scene.simulator`` (N, E, H, W) in [0, 1] (the simulator is built only for this mode),
+    "ct" the CT windowed from ``CT_WINDOW`` to [0, 1], "labels" the uint8 ids."""
+    if mode == "us":
+        return scene.simulator.simulate(slices).float()
+    if mode == "ct":
+        lo, hi = CT_WINDOW
+        return ((slices.ct - lo) / (hi - lo)).clamp(0, 1)
+    if mode == "labels":
+        return slices.labels
+    raise ValueError(f"unknown image mode {mode!r}")
 
 
 def _select(res, ids):

@@ -80,6 +80,7 @@ from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.surgery_scene import SIDES, SurgeryScene
 from sonogym.geometry import (
     axis_angle_from_matrix,
+    in_frame,
     matrix_from_axis_angle,
     quat_from_matrix,
 )
@@ -394,8 +395,7 @@ class SurgeryEnv(TorchVectorEnv):
         return self.uniform(-1.0, 1.0, k, 7).float() * self.joint_noise
 
     def _regions_at(self, env_ids: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-        rg_t = self.scene.goal_rot[env_ids].transpose(-1, -2)
-        p = (rg_t @ (pos - self.scene.goal_pos[env_ids]).unsqueeze(-1)).squeeze(-1)
+        p, _ = in_frame(self.scene.goal_pos[env_ids], self.scene.goal_rot[env_ids], pos)
         return surgery_regions(p, self.half_width[env_ids], self.cfg.skin_distance)
 
     def _apply_action(self, actions: torch.Tensor) -> None:

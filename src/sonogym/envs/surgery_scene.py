@@ -35,8 +35,8 @@ import torch
 
 from sonogym.anatomy import SkinSurface
 from sonogym.envs.patients import resolve_patients
-from sonogym.envs.scene import CT_WINDOW, SIMULATORS
-from sonogym.geometry import matrix_from_axis_angle, normalize
+from sonogym.envs.scene import SIMULATORS, image_observation
+from sonogym.geometry import in_frame, matrix_from_axis_angle, normalize
 
 SIDES = ("right", "left")
 
@@ -297,15 +297,21 @@ class SurgeryScene:
     # ------------------------------------------------------------------ frames
     def tip_in_goal(self, env_ids=slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
         """Drill tip in {G}: position (K, 3) m and rotation R_GD (K, 3, 3)."""
-        rg_t = self.goal_rot[env_ids].transpose(-1, -2)
-        p = (rg_t @ (self.tip_pos[env_ids] - self.goal_pos[env_ids]).unsqueeze(-1)).squeeze(-1)
-        return p, rg_t @ self.tip_rot[env_ids]
+        return in_frame(
+            self.goal_pos[env_ids],
+            self.goal_rot[env_ids],
+            self.tip_pos[env_ids],
+            self.tip_rot[env_ids],
+        )
 
     def tip_in_probe(self, env_ids=slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
         """Drill tip in {U}: position (K, 3) m and rotation R_UD (K, 3, 3)."""
-        ru_t = self.probe_rot[env_ids].transpose(-1, -2)
-        p = (ru_t @ (self.tip_pos[env_ids] - self.probe_pos[env_ids]).unsqueeze(-1)).squeeze(-1)
-        return p, ru_t @ self.tip_rot[env_ids]
+        return in_frame(
+            self.probe_pos[env_ids],
+            self.probe_rot[env_ids],
+            self.tip_pos[env_ids],
+            self.tip_rot[env_ids],
+        )
 
     # ---------------------------------------------------------------- imaging
     @cached_property
@@ -339,11 +345,4 @@ class SurgeryScene:
         [0, 1], "labels" uint8."""
         sl = slice(None) if env_ids is None else env_ids
         s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
-        if mode == "us":
-            return self.simulator.simulate(s).float()
-        if mode == "ct":
-            lo, hi = CT_WINDOW
-            return ((s.ct - lo) / (hi - lo)).clamp(0, 1)
-        if mode == "labels":
-            return s.labels
-        raise ValueError(f"unknown image mode {mode!r}")
+        return image_observation(s, mode, self)

@@ -131,6 +131,12 @@ def train(
     phantom_spacing: Annotated[
         float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
     ] = None,
+    net: Annotated[
+        str | None, typer.Option(help="Conv trunk: paper (default) or small (CPU-sized).")
+    ] = None,
+    threads: Annotated[
+        int | None, typer.Option(help="torch CPU threads (default: torch's; 1 on a busy CPU).")
+    ] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
     out: Annotated[
         Path | None, typer.Option(help="Run directory (default runs/<task>-<algo>-s<seed>).")
@@ -147,6 +153,10 @@ def train(
         raise typer.BadParameter(str(e)) from None
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
     env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
     try:
         res = run_train(
             task,
@@ -158,6 +168,7 @@ def train(
             patients=pats,
             simulator=simulator,
             obs_downsample=obs_downsample,
+            net=net,
             env_kwargs=env_kwargs,
             device=device,
             resume=resume,

@@ -40,8 +40,8 @@ def load_policy(
     )
     low = np.asarray(cfg["action_space"]["low"], np.float32)
     high = np.asarray(cfg["action_space"]["high"], np.float32)
-    model = make_models(cfg["task"], layout, gym.spaces.Box(low, high, dtype=np.float32), device)
-    model = model["policy"]
+    box = gym.spaces.Box(low, high, dtype=np.float32)
+    model = make_models(cfg["task"], layout, box, device, run_net(cfg))["policy"]
     state = torch.load(checkpoint, map_location=device, weights_only=False)
     model.load_state_dict(state["policy"])
     model.eval()
@@ -58,8 +58,15 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
         raise ValueError(f"{run} is a {cfg['algo']} run; only ppo-sf runs have a cost critic")
     if checkpoint is None:
         checkpoint = latest_checkpoint(run)[0]
-    critic = CostCritic(cfg["task"], policy.encoder.layout, policy.action_space, device)
+    critic = CostCritic(
+        cfg["task"], policy.encoder.layout, policy.action_space, device, run_net(cfg)
+    )
     state = torch.load(checkpoint, map_location=device, weights_only=False)
     critic.load_state_dict(state["cost_critic"])
     critic.eval()
     return critic, float(cfg["task_config"]["cost_threshold"])
+
+
+def run_net(cfg: dict) -> str:
+    """The conv trunk size a run was trained with (runs before the option existed: "paper")."""
+    return cfg["task_config"].get("net", "paper")

@@ -88,6 +88,7 @@ class TaskRLConfig:
     timesteps: int  # env steps per env (reference trainer timesteps)
     num_envs: int = 128  # paper
     obs_downsample: int = 1  # integer average-pooling factor of image observations
+    net: str = "paper"  # conv trunk size: "paper" or "small" (networks.NETS)
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options

@@ -42,11 +42,12 @@ class CostValue(DeterministicMixin, Model):
         layout: ObsLayout,
         action_space: gym.spaces.Box,
         device: str | torch.device | None = None,
+        net: str = "paper",
     ) -> None:
         obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
         Model.__init__(self, observation_space=obs_space, action_space=action_space, device=device)
         DeterministicMixin.__init__(self, clip_actions=False, role="cost_value")
-        self.encoder = Encoder(task, layout)
+        self.encoder = Encoder(task, layout, net)
         self.head = nn.Linear(self.encoder.out_features, 1)
         self.to(self.device)
 

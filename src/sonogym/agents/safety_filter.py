@@ -39,11 +39,12 @@ class CostCritic(DeterministicMixin, Model):
         layout: ObsLayout,
         action_space: gym.spaces.Box,
         device: str | torch.device | None = None,
+        net: str = "paper",
     ) -> None:
         obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
         Model.__init__(self, observation_space=obs_space, action_space=action_space, device=device)
         DeterministicMixin.__init__(self, clip_actions=False, role="cost_critic")
-        self.encoder = Encoder(task, layout)
+        self.encoder = Encoder(task, layout, net)
         self.action_mlp = mlp(int(action_space.shape[0]), VECTOR_MLP)
         self.head = nn.Sequential(
             mlp(self.encoder.out_features + VECTOR_MLP[-1], (256, 128)), nn.Linear(128, 1)

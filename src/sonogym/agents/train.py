@@ -78,6 +78,7 @@ def train(
     patients: tuple | None = None,
     simulator: str | None = None,
     obs_downsample: int | None = None,
+    net: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
     device: str = "cpu",
     resume: bool = False,
@@ -93,6 +94,7 @@ def train(
         seed: seeds torch and the envs' first reset.
         out: run directory (default ``runs/<task>-<algo>-s<seed>``).
         patients, simulator, obs_downsample, env_kwargs: override the task config's env options.
+        net: conv trunk size, "paper" (default) or "small" (``networks.NETS``).
         resume: continue from the newest checkpoint in ``out``; without it an ``out`` that holds
             checkpoints is refused.
         checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
@@ -115,6 +117,7 @@ def train(
         num_envs=envs or base.num_envs,
         timesteps=steps or base.timesteps,
         obs_downsample=obs_downsample or base.obs_downsample,
+        net=net or base.net,
         env_kwargs=kw,
     )
     params = cfg.params(algo)
@@ -139,15 +142,19 @@ def train(
     torch.manual_seed(seed)
     env = make_env(cfg, cfg.num_envs, device)
     adapter = SkrlEnvAdapter(env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start)
-    models = make_models(task, adapter.layout, adapter.action_space, device)
+    models = make_models(task, adapter.layout, adapter.action_space, device, cfg.net)
     if algo == "ppo-sf":
         from sonogym.agents.safety_filter import CostCritic
 
-        models["cost_critic"] = CostCritic(task, adapter.layout, adapter.action_space, device)
+        models["cost_critic"] = CostCritic(
+            task, adapter.layout, adapter.action_space, device, cfg.net
+        )
     elif algo == "ppo-lag":
         from sonogym.agents.lagrangian import CostValue
 
-        models["cost_value"] = CostValue(task, adapter.layout, adapter.action_space, device)
+        models["cost_value"] = CostValue(
+            task, adapter.layout, adapter.action_space, device, cfg.net
+        )
     if checkpoint_interval is None:
         checkpoint_interval = params.rollouts * max(1, round(steps / 10 / params.rollouts))
     if write_interval is None:

@@ -70,6 +70,13 @@ def test_errors():
     small = ObsLayout(("_",), ((1, 50, 37),))
     with pytest.raises(ValueError, match="obs_downsample"):
         make_models("navigation", small, _box(3))
+    # the small trunk fits the 50 x 37 image (obs_downsample 4) with the same 4 convs
+    model = make_models("navigation", small, _box(3), net="small")["policy"]
+    convs = [m for m in model.encoder.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert len(convs) == 4
+    assert model.act({"observations": torch.rand(2, small.size)}, role="policy")[0].shape == (2, 3)
+    with pytest.raises(ValueError, match="unknown net"):
+        make_models("navigation", layout, _box(3), net="huge")
     with pytest.raises(ValueError, match="known tasks"):
         make_models("nope", layout, _box(3))
     with pytest.raises(ValueError, match="role"):

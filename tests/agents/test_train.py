@@ -80,21 +80,25 @@ def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "task,algo,steps",
+    "task,algo,steps,net",
     [
-        ("navigation", "a2c", 32),
-        ("reconstruction", "ppo", 32),
-        ("reconstruction", "a2c", 64),
-        ("surgery", "ppo", 32),
-        ("surgery", "a2c", 64),
+        ("navigation", "a2c", 32, "small"),
+        ("reconstruction", "ppo", 32, "paper"),
+        ("reconstruction", "a2c", 64, "small"),
+        ("surgery", "ppo", 32, "paper"),
+        ("surgery", "a2c", 64, "paper"),
     ],
 )
-def test_every_pair_updates_weights(tmp_path, task, algo, steps):
-    res = _tiny(task, algo, tmp_path / f"{task}-{algo}", steps=steps)
+def test_every_pair_updates_weights(tmp_path, task, algo, steps, net):
+    res = _tiny(task, algo, tmp_path / f"{task}-{algo}", steps=steps, net=net)
     assert res.checkpoint.exists()
     _weights_changed(res.out, steps)
-    policy, _ = load_policy(res.out)
+    policy, cfg = load_policy(res.out)
+    assert cfg["task_config"]["net"] == net
     assert policy.mean_head.out_features == {"reconstruction": 4, "surgery": 6}.get(task, 3)
+    # the loaded trunk is the one trained (small: 16 channels in the first conv, paper: 32)
+    first_conv = next(m for m in policy.encoder.modules() if isinstance(m, torch.nn.Conv2d))
+    assert first_conv.out_channels == {"small": 16, "paper": 32}[net]
 
 
 def test_unsupported_pairs_are_refused(tmp_path):

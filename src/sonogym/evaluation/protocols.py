@@ -96,7 +96,7 @@ class Protocol:
                     f"{list(TRAIN_PATIENTS)} (sonogym train --protocol odt-patient)"
                 )
         if self.name == "odt-sim":
-            sim = run_env_kwargs.get("simulator")
+            sim = run_env_kwargs.get("simulator", "physical")  # the envs' default
             nets = run_env_kwargs.get("learned_nets")
             if sim != "learned":
                 raise ProtocolError(
@@ -159,3 +159,9 @@ def protocol_of_simulator(simulator: str) -> str:
 def simulator_group(simulator: str | None) -> str:
     """The paper's simulator group: "LB" (learned) or "MB" (model-based presets)."""
     return "LB" if simulator == "learned" else "MB"
+
+
+def protocol_train_kwargs(name: str, **explicit: Any) -> dict[str, Any]:
+    """Training env options of protocol ``name`` with ``explicit`` overrides (None: not given),
+    checked: ``sonogym train --protocol``."""
+    return protocol(name).train_env_kwargs(**explicit)

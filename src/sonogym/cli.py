@@ -271,7 +271,7 @@ def plot(
     )  # fmt: skip
     for p in pngs:
         typer.echo(f"wrote {p}")
-    typer.echo(f"wrote {out}/curves.md ({len(found)} runs)")
+    typer.echo(f"wrote {out}/curves.md ({len(found)} run{'s' if len(found) != 1 else ''})")
 
 
 @app.command(context_settings={"allow_extra_args": True})

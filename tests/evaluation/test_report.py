@@ -82,7 +82,9 @@ def surgery_runs(tmp_path_factory):
         _fake_run(root, "surgery", "ppo", 0, protocols=("idt", "odt-patient")),
         _fake_run(root, "surgery", "ppo", 1, protocols=("idt", "odt-patient")),
         _fake_run(root, "surgery", "ppo-sf", 0, protocols=("idt", "odt-patient")),
-        _fake_run(root, "surgery", "ppo", 0, "learned", protocols=("idt", "odt-sim")),
+        _fake_run(
+            root, "surgery", "ppo", 0, "learned", protocols=("idt", "odt-sim", "odt-patient")
+        ),
         _fake_run(root, "surgery", "act", 0, "learned", protocols=("idt",)),  # an IL run
         _fake_run(root, "navigation", "ppo", 0),  # another task: left out
     ]
@@ -149,6 +151,12 @@ def test_surgery_report_is_reproducible_and_pools_the_right_logs(surgery_runs, t
     assert "surgery-ppo-physical-s1 (seed 1)" in md and "navigation" not in md.split("Runs:")[1]
     assert "| MB | PPO + SF | 2.17 | 8.94 |" in md  # the paper's values beside ours
     assert "side err [mm] IDT | side err [mm] ODT" in (a.parent / "table1.md").read_text()
+    # LB runs on the held-out patient: the appendix's "new patient" table, beside the paper's
+    new = md.split("## New patient")[1]
+    v = load_log(log_path(runs[3], "odt-patient")).metrics["policy"]["insertion_error_mm"]
+    assert (
+        f"{float(v.astype(np.float64).mean()):.3g} ±" in new and "| PPO + SF | 17.6 ± 54.2" in new
+    )
 
 
 def test_learning_curves_over_seeds_with_the_expert_line(tmp_path):

@@ -94,6 +94,12 @@ PAPER_TABLE1: dict[tuple[str, str], dict[tuple[str, str], float]] = {
         ("LB", "ACT"): (5.34, 6.26, 1.62, 1.72, 1.01, 1.81, 86.0, 80.3),
     }.items()
 }
+#: The paper's appendix table "new patient" (surgery, LB simulation, held-out patient).
+PAPER_NEW_PATIENT: dict[str, tuple[str, ...]] = {
+    "PPO": ("27.3 ± 36.4", "12.1 ± 8.77", "8.28 ± 7.33", "52.86"),
+    "PPO + SF": ("17.6 ± 54.2", "11.2 ± 7.48", "8.02 ± 7.12", "60.08"),
+    "ACT": ("20.7 ± 15.6", "15.4 ± 3.92", "7.64 ± 2.85", "72.06"),
+}
 #: Method order in tables and charts (others follow alphabetically).
 METHOD_ORDER = ("PPO", "PPO + SF", "PPO-Lag", "A2C", "ACT", "DP", "expert", "heuristic")
 
@@ -244,6 +250,25 @@ def table1(cells: list[Cell]) -> tuple[str, str, list[Cell]]:
     if not rows:
         md.append("| – | (no surgery episode logs) |" + " – |" * len(cols))
     return "\n".join(md) + "\n", buf.getvalue(), used
+
+
+def new_patient_table(cells: list[Cell]) -> tuple[str, list[Cell]] | None:
+    """(markdown, cells) of the appendix's "new patient" table: LB runs under ``odt-patient``;
+    None when there are none."""
+    use = [
+        c for c in cells if (c.sim, c.protocol) == ("LB", "odt-patient") and c.method != "random"
+    ]
+    if not use:
+        return None
+    idx = {(c.method, c.metric.key): c for c in use}
+    mets = METRICS["surgery"]
+    md = ["| Algos | " + " | ".join(f"{m.label} [{m.unit}]" for m in mets) + " |",
+          "|" + "---|" * (len(mets) + 1)]  # fmt: skip
+    for method in sorted({c.method for c in use}, key=_order):
+        row = [idx.get((method, m.key)) for m in mets]
+        vals = ["–" if c is None else f"{_fmt(c.mean)} ± {_fmt(c.std)}" for c in row]
+        md.append(f"| {method} | " + " | ".join(vals) + " |")
+    return "\n".join(md) + "\n", use
 
 
 def paper_table1_md() -> str:
@@ -398,6 +423,19 @@ def build_report(
             "higher is safer):\n",
             paper_table1_md(),
         ]
+        extra = new_patient_table(cells)
+        if extra is not None:
+            mets = METRICS["surgery"]
+            paper = ["| Algos | " + " | ".join(f"{m.label} [{m.unit}]" for m in mets) + " |",
+                     "|" + "---|" * (len(mets) + 1)]  # fmt: skip
+            paper += [f"| {a} | " + " | ".join(v) + " |" for a, v in PAPER_NEW_PATIENT.items()]
+            md += [
+                "## New patient, learned simulation (appendix table)\n",
+                extra[0],
+                f"Source runs: {_sources(extra[1])}\n",
+                "Paper:\n",
+                "\n".join(paper) + "\n",
+            ]
     else:
         res = bar_chart(task, cells, out / "bars.png")
         if res is not None:

@@ -142,6 +142,13 @@ def train(
         Path | None, typer.Option(help="Run directory (default runs/<task>-<algo>-s<seed>).")
     ] = None,
     resume: Annotated[bool, typer.Option(help="Continue from the run's last checkpoint.")] = False,
+    protocol: Annotated[
+        str | None,
+        typer.Option(
+            help="Train for an evaluation protocol: idt / odt-patient (cohort patients 0-4), "
+            "odt-sim (also learned nets 0-3). --patients / --simulator override it."
+        ),
+    ] = None,
 ) -> None:
     """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory."""
     from sonogym.agents.configs import check_supported
@@ -153,6 +160,14 @@ def train(
         raise typer.BadParameter(str(e)) from None
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
     env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
+    if protocol is not None:
+        from sonogym.evaluation.protocols import protocol_train_kwargs
+
+        try:
+            env_kwargs.update(protocol_train_kwargs(protocol, patients=pats, simulator=simulator))
+        except ValueError as e:
+            raise typer.BadParameter(str(e)) from None
+        pats, simulator = None, None
     if threads is not None:
         import torch
 
@@ -187,16 +202,105 @@ def eval_(
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the evaluation starts.")] = 1000,
     device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+    protocol: Annotated[
+        str,
+        typer.Option(
+            help="idt (the run's simulator and patients), odt-sim (learned net 4) or "
+            "odt-patient (held-out patient 5)."
+        ),
+    ] = "idt",
+    held_out: Annotated[
+        int, typer.Option(help="odt-patient: number of held-out phantoms (seeds 5, 6, ...).")
+    ] = 1,
 ) -> None:
-    """Evaluate a run's policy, the task's expert and a random policy; print and save the table."""
+    """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
+    the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
+    from sonogym.evaluation.protocols import PROTOCOLS
     from sonogym.evaluation.rl_eval import evaluate_run, format_table
 
+    if protocol not in PROTOCOLS:
+        raise typer.BadParameter(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
     try:
-        results = evaluate_run(run, trials=trials, envs=envs, seed=seed, device=device)
-    except FileNotFoundError as e:
+        results = evaluate_run(
+            run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
+            held_out_patients=held_out,
+        )  # fmt: skip
+    except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
     typer.echo(format_table(results), nl=False)
-    typer.echo(f"wrote {run}/eval.md and eval.json")
+    stem = "eval" if protocol == "idt" else f"eval-{protocol}"
+    typer.echo(
+        f"wrote {run}/{stem}.md, {stem}.json, episodes/{protocol}.npz, trajectories-{protocol}.png"
+    )
+
+
+@app.command(context_settings={"allow_extra_args": True})
+def plot(
+    ctx: typer.Context,
+    runs: Annotated[
+        list[Path],
+        typer.Option(
+            help="Run folders, or folders holding runs; repeatable, and further paths may follow "
+            "(--runs runs/nav-*)."
+        ),
+    ],
+    out: Annotated[Path, typer.Option(help="Folder for the PNG, CSV and curves.md.")] = Path(
+        "runs/plots"
+    ),
+    metric: Annotated[
+        list[str] | None,
+        typer.Option(help="TensorBoard scalar; repeatable (default 'Episode / return')."),
+    ] = None,
+    expert: Annotated[
+        bool, typer.Option(help="Draw the expert's mean as a reference line.")
+    ] = True,
+    expert_episodes: Annotated[
+        int, typer.Option(help="Expert episodes when no eval log gives its mean.")
+    ] = 4,
+) -> None:
+    """Learning curves over seeds (mean ± 1 sigma per task and algorithm) from TensorBoard logs."""
+    from sonogym.evaluation.curves import DEFAULT_METRIC, discover_runs, plot_curves
+
+    try:
+        found = discover_runs([*runs, *map(Path, ctx.args)])
+    except FileNotFoundError as e:
+        raise typer.BadParameter(str(e)) from None
+    pngs = plot_curves(
+        found, out, tuple(metric or [DEFAULT_METRIC]), expert=expert,
+        expert_episodes=expert_episodes,
+    )  # fmt: skip
+    for p in pngs:
+        typer.echo(f"wrote {p}")
+    typer.echo(f"wrote {out}/curves.md ({len(found)} run{'s' if len(found) != 1 else ''})")
+
+
+@app.command(context_settings={"allow_extra_args": True})
+def report(
+    ctx: typer.Context,
+    task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
+    runs: Annotated[
+        list[Path],
+        typer.Option(
+            help="Run folders, or folders holding runs; repeatable, and further paths may follow."
+        ),
+    ],
+    out: Annotated[
+        Path | None, typer.Option(help="Report folder (default runs/report-<task>).")
+    ] = None,
+    curves: Annotated[bool, typer.Option(help="Include the learning curves.")] = True,
+) -> None:
+    """The paper's tables and figures for a task from finished, evaluated runs (Markdown, CSV,
+    PNG in one folder)."""
+    from sonogym.evaluation.report import build_report
+
+    paths = [*runs, *map(Path, ctx.args)]
+    out = out or Path(f"runs/report-{task}")
+    cmd = f"sonogym report --task {task} --runs " + " ".join(map(str, paths))
+    try:
+        md = build_report(task, paths, out, curves=curves, command=cmd)
+    except (FileNotFoundError, ValueError) as e:
+        raise typer.BadParameter(str(e)) from None
+    typer.echo(f"wrote {md} and its tables and figures in {out}/")
 
 
 @app.command("lb-data")

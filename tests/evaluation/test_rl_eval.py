@@ -57,3 +57,46 @@ def test_eval_cli_and_errors(nav_run, tmp_path):
         evaluate_run(tmp_path)
     with pytest.raises(ValueError, match="unknown controllers"):
         evaluate_run(nav_run, controllers=("oracle",))
+
+
+def test_protocol_eval_saves_episode_logs_and_refuses_held_out_runs(nav_run, tmp_path):
+    import shutil
+
+    import numpy as np
+
+    from sonogym.evaluation.episodes import load_log, log_path
+    from sonogym.evaluation.protocols import ProtocolError
+    from sonogym.evaluation.report import build_report
+
+    res = evaluate_run(nav_run, trials=2, envs=2, protocol="odt-patient", plot=False)
+    log = load_log(log_path(nav_run, "odt-patient"))
+    assert log.meta["test_env"]["patients"] == [5] and log.meta["train_env"]["patients"] == [0]
+    assert log.meta["protocol"] == "odt-patient" and log.meta["trials"] == 2
+    assert json.loads((nav_run / "eval-odt-patient.json").read_text())["protocol"] == "odt-patient"
+    for c in ("policy", "expert", "random"):
+        m, tr = log.metrics[c], log.tracks[c]
+        assert tr.shape == (2, 11, 3)  # start + 10 steps; x, z (mm), yaw (deg) from the goal
+        # the logged path ends where the episode's metrics were measured
+        np.testing.assert_allclose(np.hypot(tr[:, -1, 0], tr[:, -1, 1]), m["position_error_mm"],
+                                   atol=1e-3)  # fmt: skip
+        np.testing.assert_allclose(np.abs(tr[:, -1, 2]), m["angle_error_deg"], atol=1e-3)
+        assert float(m["return"].mean()) == pytest.approx(res[c]["return"][0], rel=1e-6)
+
+    # a run trained on the held-out patient is refused before anything runs
+    leaked = tmp_path / "leaked"
+    shutil.copytree(nav_run, leaked)
+    cfg = json.loads((leaked / "config.json").read_text())
+    cfg["task_config"]["env_kwargs"]["patients"] = [0, 5]
+    (leaked / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ProtocolError, match="held-out"):
+        evaluate_run(leaked, trials=2, envs=2, protocol="odt-patient")
+    with pytest.raises(ProtocolError, match="learned simulator"):
+        evaluate_run(nav_run, trials=2, envs=2, protocol="odt-sim")
+    with pytest.raises(ValueError, match="contradict"):
+        evaluate_run(nav_run, trials=2, protocol="odt-patient", env_overrides={"patients": (1,)})
+
+    # the report reads these logs only: twice, the same numbers
+    a = build_report("navigation", [nav_run], tmp_path / "a", curves=False)
+    b = build_report("navigation", [nav_run], tmp_path / "b", curves=False)
+    assert (a.parent / "metrics.csv").read_text() == (b.parent / "metrics.csv").read_text()
+    assert (a.parent / "bars.png").exists() and "(seed 0)" in a.read_text()

@@ -10,7 +10,10 @@ starts and returns the task's metrics (mean and std over episodes):
   from the privileged ``info``, as ``sonogym demo`` runs it;
 * ``random``: actions uniform in the env's action box, from a seeded generator.
 
-The table is written to ``<run>/eval.json`` and ``<run>/eval.md``.
+The table is written to ``<run>/eval.json`` and ``<run>/eval.md`` (``eval-<protocol>.*`` for
+the out-of-domain protocols), every episode's metrics and trajectory to
+``<run>/episodes/<protocol>.npz`` (``sonogym.evaluation.episodes``) and a trajectory figure to
+``<run>/trajectories-<protocol>.png``.
 """
 
 from __future__ import annotations
@@ -35,29 +38,122 @@ def _tuples(x: Any) -> Any:
 
 def evaluate_run(
     run: str | Path,
-    trials: int = 100,
+    trials: int | None = None,
+    envs: int | None = None,
+    seed: int | None = None,
+    device: str = "cpu",
+    env_overrides: dict[str, Any] | None = None,
+    controllers: tuple[str, ...] = CONTROLLERS,
+    protocol: str | None = None,
+    held_out_patients: int = 1,
+    plot: bool = True,
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
+
+    ``protocol``: ``idt`` (default), ``odt-sim`` or ``odt-patient``
+    (``sonogym.evaluation.protocols``): its test env options override the run's own, and its
+    trials (100) and seed (1000) are the defaults. ``env_overrides`` may add other env options
+    (not the protocol's). Without a protocol but with overrides the log is named ``custom``.
+
+    Writes ``eval.json`` / ``eval.md`` (``eval-<protocol>.*`` for other than ``idt``), the
+    per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
+    ``trajectories-<protocol>.png``.
+    """
+    from sonogym.agents.checkpoint import load_policy
+    from sonogym.agents.train import latest_checkpoint
+    from sonogym.evaluation.episodes import TRACKS, load_log, log_path, plot_trajectories, save_log
+    from sonogym.evaluation.protocols import PROTOCOL_KEYS
+    from sonogym.evaluation.protocols import protocol as get_protocol
+
+    unknown = sorted(set(controllers) - set(CONTROLLERS))
+    if unknown:
+        raise ValueError(f"unknown controllers {unknown}; choose from {list(CONTROLLERS)}")
+    run = Path(run)
+    _, cfg = load_policy(run, device=device)  # checks the run folder early
+    proto = get_protocol(protocol or "idt", held_out_patients)
+    trials = proto.trials if trials is None else trials
+    seed = proto.seed if seed is None else seed
+    if trials < 1:
+        raise ValueError(f"trials must be >= 1, got {trials}")
+    train_env = _tuples(cfg["task_config"]["env_kwargs"])
+    overrides = proto.test_env_overrides(train_env)
+    clash = sorted(set(env_overrides or {}) & set(PROTOCOL_KEYS))
+    if protocol is not None and clash:
+        raise ValueError(
+            f"env_overrides {clash} contradict protocol {protocol!r}, which sets them itself"
+        )
+    overrides.update(env_overrides or {})
+    name = protocol or ("custom" if env_overrides else "idt")
+
+    episodes = rollout(run, trials, envs, seed, device, overrides, controllers)
+    results = {
+        c: {
+            k: (float(t.mean()), float(t.std()) if trials > 1 else 0.0)
+            for k, t in ((k, torch.from_numpy(v)) for k, v in ep["metrics"].items())
+        }
+        for c, ep in episodes.items()
+    }
+    track = TRACKS[cfg["task"]]
+    meta = {
+        "task": cfg["task"],
+        "algo": cfg["algo"],
+        "run": run.resolve().name,
+        "train_seed": cfg["seed"],
+        "protocol": name,
+        "eval_seed": seed,
+        "trials": trials,
+        "controllers": list(episodes),
+        "checkpoint": latest_checkpoint(run)[0].name,
+        "train_env": cfg["task_config"]["env_kwargs"],
+        "test_env": _jsonable({**train_env, **overrides}),
+        "track_columns": list(track.columns),
+        "track_units": list(track.units),
+    }
+    log = save_log(
+        log_path(run, name),
+        meta,
+        {c: ep["metrics"] for c, ep in episodes.items()},
+        {c: ep["track"] for c, ep in episodes.items()},
+    )
+    if plot:
+        plot_trajectories(load_log(log), run / f"trajectories-{name}.png")
+    stem = "eval" if name == "idt" else f"eval-{name}"
+    table = {
+        "task": cfg["task"],
+        "trials": trials,
+        "seed": seed,
+        "protocol": name,
+        "env_overrides": _jsonable(overrides),
+        "results": results,
+    }
+    (run / f"{stem}.json").write_text(json.dumps(table, indent=1))
+    (run / f"{stem}.md").write_text(format_table(results))
+    return results
+
+
+def rollout(
+    run: str | Path,
+    trials: int,
     envs: int | None = None,
     seed: int = 1000,
     device: str = "cpu",
     env_overrides: dict[str, Any] | None = None,
     controllers: tuple[str, ...] = CONTROLLERS,
-) -> dict[str, dict[str, tuple[float, float]]]:
-    """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc)."""
+) -> dict[str, dict[str, Any]]:
+    """Run ``trials`` episodes per controller in the run's env (with ``env_overrides``), all
+    from the same seeded starts: {controller: {"metrics": {metric: (trials,) array},
+    "track": (trials, T + 1, D) array}} (see ``episodes.TRACKS``). Nothing is written."""
     from sonogym.agents.adapter import SkrlEnvAdapter
     from sonogym.agents.checkpoint import load_policy
     from sonogym.agents.configs import task_config
     from sonogym.agents.train import make_env
     from sonogym.evaluation.demo import DEMO_TASKS
+    from sonogym.evaluation.episodes import TRACKS, current_info
 
-    unknown = sorted(set(controllers) - set(CONTROLLERS))
-    if unknown:
-        raise ValueError(f"unknown controllers {unknown}; choose from {list(CONTROLLERS)}")
-    if trials < 1:
-        raise ValueError(f"trials must be >= 1, got {trials}")
     run = Path(run)
     model, cfg = load_policy(run, device=device)
     critic = None
-    if cfg["algo"] == "ppo-sf":  # the policy acts through its safety filter
+    if cfg["algo"] == "ppo-sf" and "policy" in controllers:  # acts through its safety filter
         from sonogym.agents.checkpoint import load_cost_critic
         from sonogym.agents.safety_filter import filter_actions
 
@@ -69,44 +165,59 @@ def evaluate_run(
     env = make_env(task_config(task, env_kwargs=env_kwargs), n, device)
     adapter = SkrlEnvAdapter(env, tc["obs_downsample"], tc["obs_scales"])
     demo = DEMO_TASKS[task]
+    track = TRACKS[task]
     low = torch.as_tensor(env.single_action_space.low, device=env.device)
     high = torch.as_tensor(env.single_action_space.high, device=env.device)
+    T = env.episode_length
+    batches = math.ceil(trials / n)
 
-    results: dict[str, dict[str, tuple[float, float]]] = {}
+    out: dict[str, dict[str, Any]] = {}
     for name in controllers:
         gen = torch.Generator(device="cpu").manual_seed(seed)
         obs, info = env.reset(seed=seed)
         collected: dict[str, list[torch.Tensor]] = {}
-        done = 0
-        for _ in range(math.ceil(trials / n) * env.episode_length):
-            with torch.no_grad():
-                if name == "policy":
-                    x = adapter.flatten(obs)
-                    action = model.act({"observations": x}, role="policy")[1]["mean_actions"]
-                    if critic is not None:
-                        action, _ = filter_actions(critic, x, action, threshold)
-                elif name == "expert":
-                    action = demo.expert(env, info)
-                else:
-                    u = torch.rand(n, *low.shape, generator=gen).to(env.device)
-                    action = low + (high - low) * u
-            obs, _, _, _, info = env.step(action)
-            if "final_info" in info:
-                for k, v in info["final_info"].items():
-                    if k != "env_ids":
-                        collected.setdefault(k, []).append(v.detach().float().cpu())
-                done += len(info["final_info"]["env_ids"])
-                if done >= trials:
-                    break
-        results[name] = {
-            k: (float(t[:trials].mean()), float(t[:trials].std()) if trials > 1 else 0.0)
-            for k, t in ((k, torch.cat(v)) for k, v in collected.items())
+        paths = torch.zeros(batches * n, T + 1, len(track.columns))
+        for b in range(batches):
+            rows = slice(b * n, (b + 1) * n)
+            paths[rows, 0] = track.fn(env, info if b == 0 else current_info(env)).float().cpu()
+            for t in range(T):
+                with torch.no_grad():
+                    if name == "policy":
+                        x = adapter.flatten(obs)
+                        action = model.act({"observations": x}, role="policy")[1]["mean_actions"]
+                        if critic is not None:
+                            action, _ = filter_actions(critic, x, action, threshold)
+                    elif name == "expert":
+                        action = demo.expert(env, info)
+                    else:
+                        u = torch.rand(n, *low.shape, generator=gen).to(env.device)
+                        action = low + (high - low) * u
+                obs, _, _, _, info = env.step(action)
+                paths[rows, t + 1] = track.fn(env, info).float().cpu()
+                final = info.get("final_info")
+                if final is not None:
+                    if t != T - 1 or len(final["env_ids"]) != n:
+                        raise RuntimeError(
+                            f"{task}: episodes ended out of step (step {t + 1} of {T}, "
+                            f"{len(final['env_ids'])} of {n} envs); the log assumes fixed-length"
+                            " episodes"
+                        )
+                    order = torch.argsort(final["env_ids"].cpu())
+                    for k, v in final.items():
+                        if k != "env_ids":
+                            collected.setdefault(k, []).append(v.detach().float().cpu()[order])
+        out[name] = {
+            "metrics": {k: torch.cat(v)[:trials].numpy() for k, v in collected.items()},
+            "track": paths[:trials].numpy(),
         }
     env.close()
-    table = {"task": task, "trials": trials, "seed": seed, "results": results}
-    (run / "eval.json").write_text(json.dumps(table, indent=1))
-    (run / "eval.md").write_text(format_table(results))
-    return results
+    return out
+
+
+def _jsonable(x: Any) -> Any:
+    from sonogym.agents.configs import to_jsonable
+
+    return to_jsonable(x)
 
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:

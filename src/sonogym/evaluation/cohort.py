@@ -1,0 +1,54 @@
+"""The phantom cohort every evaluation protocol uses, in one place.
+
+Patients are procedural phantom seeds (``sonogym.anatomy.load_phantom``):
+
+* ``TRAIN_PATIENTS`` = seeds 0-4: the five training patients (paper: "train on 5 patients");
+* ``HELD_OUT_PATIENTS`` = seed 5: the held-out sixth patient, never in a training config.
+
+More held-out patients come from :func:`held_out` (seeds 5, 6, ...), which never overlap the
+training seeds. Phantom seeds >= ``LEARNED_DATA_SEEDS`` (1000) are the learned simulator's
+training phantoms (``sonogym lb-data``) and are not handed out as patients either.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+#: Training patients (phantom seeds).
+TRAIN_PATIENTS: tuple[int, ...] = (0, 1, 2, 3, 4)
+#: The held-out patient(s) of the out-of-domain-patient test (phantom seeds).
+HELD_OUT_PATIENTS: tuple[int, ...] = (5,)
+#: First phantom seed of the learned simulator's paired data (kept apart from patients).
+LEARNED_DATA_SEEDS = 1000
+
+
+def held_out(n: int = 1) -> tuple[int, ...]:
+    """``n`` held-out phantom seeds: 5, 6, ... (never a training seed, never >= 1000)."""
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    first = max(TRAIN_PATIENTS) + 1
+    seeds = tuple(range(first, first + n))
+    if seeds[-1] >= LEARNED_DATA_SEEDS:
+        raise ValueError(
+            f"at most {LEARNED_DATA_SEEDS - first} held-out phantoms (seeds >= "
+            f"{LEARNED_DATA_SEEDS} are the learned simulator's data)"
+        )
+    assert not set(seeds) & set(TRAIN_PATIENTS)
+    return seeds
+
+
+def patient_key(p: int | str) -> int | str:
+    """A comparable key of a patient spec: an int seed, or a folder path as given (a digit
+    string, as the CLI passes it, is the seed it names)."""
+    if isinstance(p, bool):
+        raise TypeError(f"patient {p!r}: use an int phantom seed or a folder path")
+    if isinstance(p, int):
+        return p
+    s = str(p)
+    return int(s) if s.lstrip("-").isdigit() else s
+
+
+def overlap(a: Iterable[int | str], b: Iterable[int | str]) -> tuple[int | str, ...]:
+    """The patients that ``a`` and ``b`` share (sorted by their string form)."""
+    common = {patient_key(p) for p in a} & {patient_key(p) for p in b}
+    return tuple(sorted(common, key=str))

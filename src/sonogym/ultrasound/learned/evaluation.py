@@ -173,7 +173,8 @@ def model_card(work: str | Path) -> dict:
         tm = json.loads((recipe.run_dir(work, k) / "metrics.json").read_text())
         entry = {"net": k, "seed": k, "steps": tm["steps"], "train_wall_s": tm["wall_s"],
                  "train_l1_first": tm["train_l1_first"], "train_l1_last": tm["train_l1_last"],
-                 "baseline": {"a": base.a, "b": base.b}}  # fmt: skip
+                 "baseline": {"a": base.a, "b": base.b},
+                 "physics": train.manifest["source"].get("model")}  # fmt: skip
         for name, root in (("test", main), ("unseen", unseen)):
             ds = PairedDataset(root, "test")
             labels = _labels(root, "test")
@@ -199,7 +200,18 @@ def model_card(work: str | Path) -> dict:
 
 
 def _markdown(card: dict) -> str:
-    lines = [
+    lines = ["| net | gain dB | frequency MHz | pulse cycles | f-number | tissue alpha x "
+             "| TGC dB/cm/MHz |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for e in card["nets"]:
+        m = e.get("physics")
+        if m:
+            lines.append(
+                f"| {e['net']} | {m['gain_db']:+.1f} | {m['frequency_hz'] / 1e6:.2f} "
+                f"| {m['pulse_cycles']:.2f} | {m['f_number']:.2f} "
+                f"| {m['tissue_alpha_scale']:.2f} | {m['tgc_alpha_db_cm_mhz']:.2f} |"
+            )
+    lines += [
+        "",
         "| net | split | n | SSIM net / linear | PSNR dB net / linear | L1 net / linear "
         "| bone F1 net / linear / target |",
         "|---|---|---|---|---|---|---|",

@@ -57,7 +57,8 @@ class LearnedSimulator:
         histogram: "per_image", "first_batch" or "none" (see the module docstring).
         degrade: deterministic down/up-sampling factor applied before matching (1 = none).
         output_scale: factor on the generator's output.
-        batch_size: images per forward pass.
+        batch_size: images per forward pass (None: 16 on CPU, where small chunks stay in
+            cache and run ~20 % faster than one big batch, 256 elsewhere).
     """
 
     def __init__(
@@ -69,7 +70,7 @@ class LearnedSimulator:
         histogram: str = "first_batch",
         degrade: float = 1.0,
         output_scale: float = 1.0,
-        batch_size: int = 256,
+        batch_size: int | None = None,
     ) -> None:
         paths = [weights] if isinstance(weights, (str, Path)) else list(weights)
         if not paths:
@@ -87,6 +88,8 @@ class LearnedSimulator:
         self.histogram = histogram
         self.degrade = float(degrade)
         self.output_scale = float(output_scale)
+        if batch_size is None:
+            batch_size = 16 if self.device.type == "cpu" else 256
         self.batch_size = int(batch_size)
         self._rng = torch.Generator().manual_seed(seed)
         self._calls = 0

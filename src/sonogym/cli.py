@@ -123,7 +123,14 @@ def train(
         typer.Option(help="Phantom seed or TotalSegmentator folder; repeatable (default 0)."),
     ] = None,
     simulator: Annotated[
-        str | None, typer.Option(help="Ultrasound preset: physical or sonogym.")
+        str | None, typer.Option(help="Ultrasound simulator: physical, sonogym or learned.")
+    ] = None,
+    learned_nets: Annotated[
+        str | None,
+        typer.Option(
+            help="With --simulator learned: comma-separated shipped net indices (0-4) and/or "
+            "generator.pt paths, e.g. 0,1,2,3 (default: all five)."
+        ),
     ] = None,
     obs_downsample: Annotated[
         int | None, typer.Option(help="Average-pool image observations by this factor.")
@@ -160,11 +167,22 @@ def train(
         raise typer.BadParameter(str(e)) from None
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
     env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
+    if learned_nets:
+        env_kwargs["learned_nets"] = tuple(
+            int(v) if v.strip().isdigit() else v.strip() for v in learned_nets.split(",")
+        )
     if protocol is not None:
         from sonogym.evaluation.protocols import protocol_train_kwargs
 
         try:
-            env_kwargs.update(protocol_train_kwargs(protocol, patients=pats, simulator=simulator))
+            env_kwargs.update(
+                protocol_train_kwargs(
+                    protocol,
+                    patients=pats,
+                    simulator=simulator,
+                    learned_nets=env_kwargs.get("learned_nets"),
+                )
+            )
         except ValueError as e:
             raise typer.BadParameter(str(e)) from None
         pats, simulator = None, None

@@ -41,6 +41,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.imaging import learned_nets_tuple
 from sonogym.envs.scene import ProbeScene
 from sonogym.geometry import relative_pose, wrap_angle
 
@@ -53,7 +54,8 @@ class NavigationConfig:
 
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: str = "physical"  # "physical" | "sonogym"
+    simulator: str = "physical"  # "physical" | "sonogym" | "learned"
+    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     obs_mode: str = "us"  # "us" | "ct" | "labels" | "state"
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
@@ -76,6 +78,7 @@ class NavigationConfig:
         if isinstance(self.patients, int | str):
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
+        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
 
 def navigation_reward(
@@ -125,6 +128,7 @@ class NavigationEnv(TorchVectorEnv):
             num_envs,
             spacing=cfg.phantom_spacing,
             simulator=cfg.simulator,
+            learned_nets=cfg.learned_nets,
             robot=cfg.robot,
             target_vertebra=cfg.target_vertebra,
             device=self.device,
@@ -166,6 +170,8 @@ class NavigationEnv(TorchVectorEnv):
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)
         self._state[env_ids] = self._measure(env_ids)
+        if self.cfg.simulator == "learned":  # last, so the other draws match model-based runs
+            self.scene.draw_nets(env_ids, self.rand(len(env_ids)))
 
     def _apply_action(self, actions: torch.Tensor) -> None:
         cfg = self.cfg

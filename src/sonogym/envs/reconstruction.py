@@ -88,6 +88,7 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.imaging import learned_nets_tuple
 from sonogym.envs.scene import ProbeScene
 from sonogym.geometry import normalize, relative_pose, wrap_angle
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
@@ -102,6 +103,7 @@ class ReconstructionConfig:
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
     simulator: str = "physical"  # preset of env.scene.observe("us") (viewing only; not sensed)
+    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     obs_mode: str = "reconstruction"  # "reconstruction" (Dict) | "state"
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
@@ -133,6 +135,7 @@ class ReconstructionConfig:
         if isinstance(self.patients, int | str):
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
+        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
     @property
     def cube_half_extent(self) -> float:
@@ -237,6 +240,7 @@ class ReconstructionEnv(TorchVectorEnv):
             num_envs,
             spacing=cfg.phantom_spacing,
             simulator=cfg.simulator,
+            learned_nets=cfg.learned_nets,
             robot=cfg.robot,
             target_vertebra=cfg.target_vertebra,
             device=self.device,
@@ -335,6 +339,8 @@ class ReconstructionEnv(TorchVectorEnv):
             self.sensed_points,
         ):
             t[env_ids] = 0
+        if self.cfg.simulator == "learned":  # last, so the other draws match model-based runs
+            self.scene.draw_nets(env_ids, self.rand(len(env_ids)))
 
     def tangent_map(self) -> torch.Tensor:
         """(N, 2, 2) map from a tangential step (dx along x_U, dy along y_U0 = n x x_U) to the

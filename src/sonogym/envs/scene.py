@@ -13,11 +13,19 @@ import numpy as np
 import torch
 
 from sonogym.anatomy import SkinSurface
+from sonogym.envs.imaging import (
+    DEFAULT_LEARNED_NETS,
+    SIMULATORS,
+    NetChoice,
+    build_simulator,
+    check_simulator,
+    simulate_us,
+)
 from sonogym.envs.patients import resolve_patients
 
 #: CT window of the "ct" observation mode, HU -> [0, 1].
 CT_WINDOW = (-1000.0, 2000.0)
-SIMULATORS = ("physical", "sonogym")
+__all__ = ["CT_WINDOW", "SIMULATORS", "ProbeScene", "image_observation"]
 
 
 class ProbeScene:
@@ -27,12 +35,14 @@ class ProbeScene:
         patients: phantom seeds and/or TotalSegmentator folders.
         num_envs: N.
         spacing: voxel size (m) of phantoms / resampled folders.
-        simulator: "physical" or "sonogym" (model-based presets).
+        simulator: "physical" or "sonogym" (model-based presets) or "learned".
         robot: arm model name ("kuka_med14", "franka_fr3") or None for an ideal probe.
         target_vertebra: the vertebra whose body centroid anchors goals and arm placement.
         device: torch device of everything.
         render: build the slicer and simulator now (else on first ``observe``).
         probe: the imaging geometry (default: the paper's 2-D linear probe).
+        learned_nets: nets of ``simulator="learned"`` (ints: shipped nets, str: weight files);
+            each env uses ``nets.index`` into them, redrawn by ``draw_nets`` at its resets.
     """
 
     def __init__(
@@ -46,10 +56,12 @@ class ProbeScene:
         device: torch.device,
         render: bool = True,
         probe=None,
+        learned_nets=DEFAULT_LEARNED_NETS,
     ) -> None:
-        if simulator not in SIMULATORS:
-            raise ValueError(f"simulator {simulator!r} is not one of {SIMULATORS}")
+        check_simulator(simulator, learned_nets)
         self.device = device
+        self.learned_nets = tuple(learned_nets)
+        self.nets = NetChoice(num_envs, len(self.learned_nets), device)
         self.num_envs = num_envs
         self.patients = resolve_patients(patients, spacing)
         self.patient_index = torch.arange(num_envs, device=device) % len(self.patients)
@@ -147,9 +159,11 @@ class ProbeScene:
 
     @cached_property
     def simulator(self):
-        from sonogym.ultrasound import ModelBasedSimulator
+        return build_simulator(self.simulator_name, self.patients, self.device, self.learned_nets)
 
-        return ModelBasedSimulator(self.simulator_name, device=self.device)
+    def draw_nets(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
+        """Draw the learned net of each env in ``env_ids`` from uniforms ``u`` (see NetChoice)."""
+        self.nets.draw(env_ids, u)
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -164,15 +178,16 @@ class ProbeScene:
 
     def observe(self, mode: str, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Images of the reached poses (see ``image_observation``)."""
-        return image_observation(self.slices(env_ids), mode, self)
+        return image_observation(self.slices(env_ids), mode, self, env_ids)
 
 
-def image_observation(slices, mode: str, scene) -> torch.Tensor:
+def image_observation(slices, mode: str, scene, env_ids=None) -> torch.Tensor:
     """An image observation of sliced CT + labels: "us" the ultrasound simulated by
-    ``scene.simulator`` (N, E, H, W) in [0, 1] (the simulator is built only for this mode),
-    "ct" the CT windowed from ``CT_WINDOW`` to [0, 1], "labels" the uint8 ids."""
+    ``scene.simulator`` (N, E, H, W) in [0, 1] (the simulator is built only for this mode; the
+    learned one uses each env's net), "ct" the CT windowed from ``CT_WINDOW`` to [0, 1],
+    "labels" the uint8 ids. ``env_ids``: the envs the slices belong to (None: all)."""
     if mode == "us":
-        return scene.simulator.simulate(slices).float()
+        return simulate_us(scene, slices, env_ids).float()
     if mode == "ct":
         lo, hi = CT_WINDOW
         return ((slices.ct - lo) / (hi - lo)).clamp(0, 1)

@@ -77,6 +77,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.imaging import learned_nets_tuple
 from sonogym.envs.surgery_scene import SIDES, SurgeryScene
 from sonogym.geometry import (
     axis_angle_from_matrix,
@@ -102,7 +103,8 @@ class SurgeryConfig:
 
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: str = "physical"  # "physical" | "sonogym"
+    simulator: str = "physical"  # "physical" | "sonogym" | "learned"
+    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     obs_mode: str = "us"  # "us" | "ct" | "labels" | "state"
     device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
@@ -143,6 +145,7 @@ class SurgeryConfig:
         if isinstance(self.patients, int | str):
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
+        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -300,6 +303,7 @@ class SurgeryEnv(TorchVectorEnv):
             num_envs,
             spacing=cfg.phantom_spacing,
             simulator=cfg.simulator,
+            learned_nets=cfg.learned_nets,
             side=cfg.side,
             target_vertebra=cfg.target_vertebra,
             device=self.device,
@@ -356,8 +360,6 @@ class SurgeryEnv(TorchVectorEnv):
         cfg, sc, k = self.cfg, self.scene, len(env_ids)
         h = cfg.probe_offset_noise
         sc.reset_probe(env_ids, self.uniform(-h, h, k, 2).float())
-        if cfg.obs_mode != "state":
-            self._image[env_ids] = sc.observe(cfg.obs_mode, env_ids)
         # Drill start: nominal joints + noise; redraw starts whose tip is not in C_free.
         q = sc.drill_start_joints(env_ids, self._joint_noise(k))
         redraws = torch.zeros(k, dtype=torch.long, device=self.device)
@@ -390,6 +392,11 @@ class SurgeryEnv(TorchVectorEnv):
         self._cost[env_ids] = 0.0
         self._safe_steps[env_ids] = 0.0
         self._tracking_error[env_ids] = 0.0
+        if cfg.simulator == "learned":  # last, so the other draws match model-based runs
+            sc.draw_nets(env_ids, self.rand(k))
+        # The probe is still for the episode: image the volume once (it does not see the drill).
+        if cfg.obs_mode != "state":
+            self._image[env_ids] = sc.observe(cfg.obs_mode, env_ids)
 
     def _joint_noise(self, k: int) -> torch.Tensor:
         return self.uniform(-1.0, 1.0, k, 7).float() * self.joint_noise

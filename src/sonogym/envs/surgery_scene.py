@@ -34,8 +34,9 @@ import numpy as np
 import torch
 
 from sonogym.anatomy import SkinSurface
+from sonogym.envs.imaging import DEFAULT_LEARNED_NETS, NetChoice, build_simulator, check_simulator
 from sonogym.envs.patients import resolve_patients
-from sonogym.envs.scene import SIMULATORS, image_observation
+from sonogym.envs.scene import image_observation
 from sonogym.geometry import in_frame, matrix_from_axis_angle, normalize
 
 SIDES = ("right", "left")
@@ -88,7 +89,8 @@ class SurgeryScene:
         patients: phantom seeds and/or TotalSegmentator folders.
         num_envs: N.
         spacing: voxel size (m) of phantoms / resampled folders.
-        simulator: "physical" or "sonogym" (model-based presets).
+        simulator: "physical" or "sonogym" (model-based presets) or "learned" (the 2-D nets
+            applied slice by slice to the volume's elevation slices).
         side: "right" or "left": the drilled pedicle (the patient's side).
         target_vertebra: the drilled vertebra.
         device: torch device of everything.
@@ -102,6 +104,7 @@ class SurgeryScene:
             tilted by ``probe_tilt``, the face's elevation edges stand off the skin (20 mm *
             sin 0.4 = 8 mm), and gel fills that wedge. None keeps the preset's value.
         render: build the slicer and simulator now (else on first ``observe``).
+        learned_nets: nets of ``simulator="learned"`` (see ``ProbeScene``).
     """
 
     def __init__(
@@ -121,11 +124,13 @@ class SurgeryScene:
         probe_settle_steps: int = 40,
         gel_depth: float | None = None,
         render: bool = True,
+        learned_nets=DEFAULT_LEARNED_NETS,
     ) -> None:
         from sonogym.robots import SURGERY_DRILL_BASE, SURGERY_PROBE_BASE
 
-        if simulator not in SIMULATORS:
-            raise ValueError(f"simulator {simulator!r} is not one of {SIMULATORS}")
+        check_simulator(simulator, learned_nets)
+        self.learned_nets = tuple(learned_nets)
+        self.nets = NetChoice(num_envs, len(self.learned_nets), device)
         if side not in SIDES:
             raise ValueError(f"side {side!r} is not one of {SIDES}")
         self.device = device
@@ -328,12 +333,20 @@ class SurgeryScene:
 
     @cached_property
     def simulator(self):
-        from sonogym.ultrasound import ModelBasedSimulator, make_model
+        from sonogym.ultrasound import make_model
 
-        model = make_model(self.simulator_name)
-        if self.gel_depth is not None:
-            model = replace(model, gel_depth=float(self.gel_depth))
-        return ModelBasedSimulator(model, device=self.device)
+        model = None
+        if self.simulator_name != "learned":
+            model = make_model(self.simulator_name)
+            if self.gel_depth is not None:
+                model = replace(model, gel_depth=float(self.gel_depth))
+        return build_simulator(
+            self.simulator_name, self.patients, self.device, self.learned_nets, model
+        )
+
+    def draw_nets(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
+        """Draw the learned net of each env in ``env_ids`` from uniforms ``u`` (see NetChoice)."""
+        self.nets.draw(env_ids, u)
 
     @property
     def image_shape(self) -> tuple[int, int, int]:
@@ -345,4 +358,4 @@ class SurgeryScene:
         [0, 1], "labels" uint8."""
         sl = slice(None) if env_ids is None else env_ids
         s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
-        return image_observation(s, mode, self)
+        return image_observation(s, mode, self, env_ids)

@@ -158,6 +158,37 @@ def random_physical_model(rng: np.random.Generator):
     )
 
 
+def _model_summary(model) -> dict:
+    return {
+        "gain_db": model.gain,
+        "frequency_hz": model.frequency,
+        "pulse_cycles": model.pulse_cycles,
+        "f_number": model.f_number,
+        "tgc_alpha_db_cm_mhz": model.tgc_alpha,
+        "tissue_alpha_scale": _alpha_scale(model),
+    }
+
+
+def _alpha_scale(model) -> float | None:
+    from sonogym.ultrasound.tissues import physical_table
+
+    base = physical_table()
+    for k, t in model.tissues.tissues.items():
+        if base.tissues[k].alpha > 0:
+            return float(t.alpha / base.tissues[k].alpha)
+    return None
+
+
+def load_labels(root: str | Path, entry: dict) -> np.ndarray | None:
+    """The label slice (uint8 (H, W)) stored with a pair's US file under key ``labels``, or
+    None when the pair has none (real data usually has none)."""
+    path = Path(root) / entry["us"]
+    if path.suffix != ".npz" or not path.is_file():
+        return None
+    with np.load(path) as z:
+        return np.asarray(z["labels"], dtype=np.uint8) if "labels" in z else None
+
+
 def write_default_pairs(
     out: str | Path,
     n: int = 2000,
@@ -169,6 +200,7 @@ def write_default_pairs(
     rng_seed: int = 0,
     models_per_seed: int = 8,
     progress: bool = False,
+    model_seed: int | None = None,
 ) -> Path:
     """Simulated training pairs: CT slices and ``physical``-preset images of phantoms.
 
@@ -176,8 +208,11 @@ def write_default_pairs(
     random on the back's skin around the spine (x within +-40 mm, z along the lumbar spine,
     any yaw, tilt within +-0.25 rad). The slicer samples every pixel (``upsample=False``, finer
     than the envs' block sampling); each group of pairs gets its own randomised model
-    (:func:`random_physical_model`). CT is stored clamped to the paper's window. Returns the
-    manifest path. The held-out split is the last ``test_fraction`` of each phantom's pairs.
+    (:func:`random_physical_model`). With ``model_seed`` every pair uses one model drawn from
+    that seed instead (a per-net imaging "style", see ``shipped.py``). CT is stored clamped to
+    the paper's window; the label slice is stored too (key ``labels``, uint8, for the bone
+    surface F1). Returns the manifest path. The held-out split is the last ``test_fraction`` of
+    each phantom's pairs.
     """
     from tqdm import tqdm
 
@@ -194,6 +229,9 @@ def write_default_pairs(
         raise ValueError("need at least one phantom seed and one pair")
     probe = ProbeGeometry.linear_2d(image_size[0], image_size[1], pixel_spacing)
     rng = np.random.default_rng(rng_seed)
+    fixed_model = None
+    if model_seed is not None:
+        fixed_model = random_physical_model(np.random.default_rng(model_seed))
     per_seed = [n // len(seeds) + (i < n % len(seeds)) for i in range(len(seeds))]
     entries: list[dict] = []
     bar = tqdm(total=n, desc="lb-data", disable=not progress)
@@ -219,13 +257,14 @@ def write_default_pairs(
             tilt = torch.from_numpy(rng.uniform(-0.25, 0.25, m))
             pos, rot = skin.surface_pose(x, z, yaw, tilt)
             slices = slicer(pos.double(), rot.double())
-            sim = ModelBasedSimulator(random_physical_model(rng))
+            sim = ModelBasedSimulator(fixed_model or random_physical_model(rng))
             us = sim.simulate(slices)[:, 0].numpy().astype(np.float32)
             ct = slices.ct[:, 0].clamp(*CT_WINDOW_HU).numpy().astype(np.float32)
+            labels = slices.labels[:, 0].numpy().astype(np.uint8)
             for j in range(m):
                 k = len(entries)
                 rel = f"pairs/{k:05d}.npz"
-                np.savez_compressed(out / rel, ct=ct[j], us=us[j])
+                np.savez_compressed(out / rel, ct=ct[j], us=us[j], labels=labels[j])
                 split = "test" if done >= count - n_test else "train"
                 entries.append({"ct": rel, "us": rel, "split": split, "phantom_seed": int(seed)})
                 done += 1
@@ -238,6 +277,8 @@ def write_default_pairs(
         "phantom_spacing_m": phantom_spacing,
         "slicer_upsample": False,
         "rng_seed": rng_seed,
+        "model_seed": model_seed,
+        "model": None if fixed_model is None else _model_summary(fixed_model),
     }
     return write_manifest(
         out, entries, (pixel_spacing, pixel_spacing), image_size, CT_WINDOW_HU, source

@@ -217,6 +217,7 @@ def train_pix2pix(
         gen.cpu(),
         hist,
         input_size=list(size),
+        image_size=list(train.ct.shape[-2:]),
         ct_window_hu=list(window),
         pixel_spacing_m=manifest["pixel_spacing_m"],
         seed=seed,

@@ -1,0 +1,104 @@
+"""simulator="learned" in the envs: nets drawn per env at resets as configured, images of the
+declared spaces, interchangeable with the model-based simulator behind one interface."""
+
+import gymnasium as gym
+import pytest
+import torch
+
+import sonogym  # noqa: F401
+from sonogym.envs.navigation import NavigationEnv
+from sonogym.ultrasound import UltrasoundSimulator
+from sonogym.ultrasound.learned.shipped import shipped_weights
+
+torch.set_num_threads(1)
+FAST = dict(patients=(0,), phantom_spacing=0.002, robot=None)
+
+
+def test_nets_switch_at_resets_as_configured():
+    env = NavigationEnv(4, simulator="learned", learned_nets=(0, 1), **FAST)
+    seen = set()
+    for seed in range(4):
+        obs, _ = env.reset(seed=seed)
+        idx = env.scene.nets.index
+        seen |= set(idx.tolist())
+        assert obs.shape == (4, 1, 200, 150)
+        assert 0 <= float(obs.min()) and float(obs.max()) <= 1
+    assert seen == {0, 1}
+    # the observation of an env is its own net's image of its pose
+    sim = env.scene.simulator
+    s = env.scene.slices()
+    for k in (0, 1):
+        alone = sim.simulate(s, nets=torch.full((4,), k))
+        rows = env.scene.nets.index == k
+        assert torch.allclose(obs[rows], alone[rows], atol=1e-5)
+    # a partial reset redraws only the reset envs' nets
+    before = env.scene.nets.index.clone()
+    mask = torch.tensor([True, False, False, False])
+    for _ in range(6):
+        env.reset(options={"reset_mask": mask})
+        assert torch.equal(env.scene.nets.index[1:], before[1:])
+
+
+def test_single_net_set_uses_only_that_net():
+    env = NavigationEnv(3, simulator="learned", learned_nets=(4,), **FAST)
+    env.reset(seed=0)
+    assert env.scene.simulator.num_nets == 1
+    assert env.scene.simulator.meta[0]["net"] == 4
+    assert env.scene.nets.index.tolist() == [0, 0, 0]
+
+
+def test_user_weights_by_path_and_bad_specs():
+    env = NavigationEnv(1, simulator="learned", learned_nets=(str(shipped_weights(2)),), **FAST)
+    obs, _ = env.reset(seed=0)
+    assert env.scene.simulator.meta[0]["net"] == 2 and obs.shape == (1, 1, 200, 150)
+    with pytest.raises(ValueError, match="ships nets 0-4"):
+        NavigationEnv(1, simulator="learned", learned_nets=(5,), **FAST)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        NavigationEnv(1, simulator="learned", learned_nets=("/no/such/net.pt",), **FAST)
+    with pytest.raises(ValueError, match="learned"):
+        NavigationEnv(1, simulator="gan", **FAST)
+
+
+def test_learned_and_model_based_are_interchangeable():
+    envs = {s: NavigationEnv(2, simulator=s, **FAST) for s in ("physical", "learned")}
+    out = {}
+    for name, env in envs.items():
+        assert isinstance(env.scene.simulator, UltrasoundSimulator)
+        obs, info = env.reset(seed=3)
+        obs2, r, *_, info2 = env.step(torch.ones(2, 3))
+        assert env.observation_space.contains(obs.numpy())
+        out[name] = (obs, info["state"], info2["state"], r)
+    # same shapes and, since the net draw comes last, the same episode
+    assert out["physical"][0].shape == out["learned"][0].shape
+    for i in (1, 2, 3):
+        assert torch.equal(out["physical"][i], out["learned"][i])
+    assert not torch.allclose(out["physical"][0], out["learned"][0])
+
+
+def test_reconstruction_viewing_image_is_learned():
+    env = gym.make_vec(
+        "SonoGym/Reconstruction-v0", num_envs=2, simulator="learned", learned_nets=(1, 3), **FAST
+    )
+    env.reset(seed=0)
+    assert set(env.scene.nets.index.tolist()) <= {0, 1}
+    img = env.scene.observe("us")
+    assert img.shape == (2, 1, 200, 150) and 0 <= float(img.min()) <= float(img.max()) <= 1
+
+
+def test_surgery_volume_slice_by_slice():
+    env = gym.make_vec(
+        "SonoGym/Surgery-v0", num_envs=1, simulator="learned", learned_nets=(0,),
+        patients=(0,), phantom_spacing=0.002,
+    )  # fmt: skip
+    obs, _ = env.reset(seed=0)
+    obs = obs["image"]
+    assert obs.shape == (1, 5, 50, 37)
+    assert 0 <= float(obs.min()) and float(obs.max()) <= 1
+    sc = env.scene
+    s = sc.slicer(sc.probe_pos, sc.probe_rot, sc.patient_index)
+    # each elevation slice is the 2-D net applied to that slice alone
+    for e in (0, 4):
+        one = type(s)(s.ct[:, e : e + 1], s.labels[:, e : e + 1], s.origin[:, e : e + 1],
+                      s.row_step, s.col_step, s.seed, s.patient_index, s.probe)  # fmt: skip
+        assert torch.allclose(sc.simulator.simulate(one, nets=torch.zeros(1)), obs[:, e : e + 1],
+                              atol=1e-5)  # fmt: skip

@@ -47,6 +47,25 @@ def test_single_net_set_uses_only_that_net():
     assert env.scene.nets.index.tolist() == [0, 0, 0]
 
 
+@pytest.mark.parametrize("task", ["Navigation", "Surgery"])
+def test_learned_images_survive_autoreset(task):
+    # Regression: images made under torch.inference_mode could not be updated in place when
+    # some envs autoreset, so training crashed at the first episode end.
+    kw = FAST if task == "Navigation" else dict(patients=(0,), phantom_spacing=0.002)
+    env = gym.make_vec(
+        f"SonoGym/{task}-v0", num_envs=2, simulator="learned", episode_length=2, **kw
+    )
+    obs, _ = env.reset(seed=0)
+    ended = 0
+    for _ in range(3):
+        obs, _, _, truncated, info = env.step(torch.zeros(env.action_space.shape))
+        ended += int(truncated.sum())
+    assert ended == 2  # both envs ended once, at step 2
+    image = obs["image"] if isinstance(obs, dict) else obs
+    assert 0 <= float(image.min()) and float(image.max()) <= 1
+    env.reset(options={"reset_mask": torch.tensor([True, False])})
+
+
 def test_user_weights_by_path_and_bad_specs():
     env = NavigationEnv(1, simulator="learned", learned_nets=(str(shipped_weights(2)),), **FAST)
     obs, _ = env.reset(seed=0)

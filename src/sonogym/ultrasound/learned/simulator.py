@@ -132,7 +132,7 @@ class LearnedSimulator:
                 stacklevel=3,
             )
 
-    @torch.inference_mode()
+    @torch.no_grad()  # not inference_mode: envs update observations in place at autoresets
     def simulate(self, slices: Slices, nets: torch.Tensor | None = None) -> torch.Tensor:
         """(N, E, H, W) images in [0, 1]. ``nets`` (N,) int: the net (index into the loaded
         ones) of each env; None: one net for the batch, redrawn every ``change_interval``

@@ -322,7 +322,9 @@ def bar_chart(task: str, cells: list[Cell], path: Path) -> tuple[Path, list[Cell
                     ys.append(c.mean)
                     es.append(c.std)
             ax.bar(xs, ys, width, yerr=es, capsize=3, label=method, color=plt.cm.tab10(j % 10))
-        ax.set_xticks(range(len(groups)), [_group_name(*g) for g in groups])
+        ax.set_xticks(
+            range(len(groups)), [_group_name(*g).replace("_", "\n", 1) for g in groups], fontsize=8
+        )
         ax.set_ylabel(f"{m.label} [{m.unit}]")
     axes[0][0].legend(fontsize=7)
     n = sorted({len(c.values) for c in use})

@@ -123,16 +123,8 @@ class NavigationEnv(TorchVectorEnv):
         cfg = make_config(NavigationConfig, kwargs)
         super().__init__(num_envs, cfg.device, cfg.episode_length)
         self.cfg = cfg
-        self.scene = ProbeScene(
-            cfg.patients,
-            num_envs,
-            spacing=cfg.phantom_spacing,
-            simulator=cfg.simulator,
-            learned_nets=cfg.learned_nets,
-            robot=cfg.robot,
-            target_vertebra=cfg.target_vertebra,
-            device=self.device,
-            render=cfg.obs_mode != "state",
+        self.scene = ProbeScene.from_config(
+            cfg, num_envs, self.device, render=cfg.obs_mode != "state"
         )
         n = num_envs
         dt = torch.float32

@@ -235,17 +235,7 @@ class ReconstructionEnv(TorchVectorEnv):
             )
         super().__init__(num_envs, cfg.device, cfg.episode_length)
         self.cfg = cfg
-        self.scene = ProbeScene(
-            cfg.patients,
-            num_envs,
-            spacing=cfg.phantom_spacing,
-            simulator=cfg.simulator,
-            learned_nets=cfg.learned_nets,
-            robot=cfg.robot,
-            target_vertebra=cfg.target_vertebra,
-            device=self.device,
-            render=False,
-        )
+        self.scene = ProbeScene.from_config(cfg, num_envs, self.device, render=False)
         dev, n, size = self.device, num_envs, cfg.volume_size
         pats = self.scene.patients
         pid = self.scene.patient_index

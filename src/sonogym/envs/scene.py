@@ -89,6 +89,22 @@ class ProbeScene:
         if render:
             _ = self.slicer, self.simulator
 
+    @classmethod
+    def from_config(cls, cfg, num_envs: int, device: torch.device, render: bool) -> ProbeScene:
+        """The scene of a probe task's config (its ``patients``, ``phantom_spacing``,
+        ``simulator``, ``learned_nets``, ``robot`` and ``target_vertebra`` fields)."""
+        return cls(
+            cfg.patients,
+            num_envs,
+            spacing=cfg.phantom_spacing,
+            simulator=cfg.simulator,
+            learned_nets=cfg.learned_nets,
+            robot=cfg.robot,
+            target_vertebra=cfg.target_vertebra,
+            device=device,
+            render=render,
+        )
+
     # ------------------------------------------------------------------ robot
     def _init_robot(self, model: str) -> None:
         from sonogym.robots import Arm, ArmConfig, SurfaceController

@@ -30,7 +30,7 @@ from skrl.resources.schedulers.torch import KLAdaptiveLR
 from torch import nn
 
 from sonogym.agents.adapter import ObsLayout
-from sonogym.agents.networks import Encoder
+from sonogym.agents.networks import Encoder, init_flat_model
 
 
 class CostValue(DeterministicMixin, Model):
@@ -44,8 +44,7 @@ class CostValue(DeterministicMixin, Model):
         device: str | torch.device | None = None,
         net: str = "paper",
     ) -> None:
-        obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
-        Model.__init__(self, observation_space=obs_space, action_space=action_space, device=device)
+        init_flat_model(self, layout, action_space, device)
         DeterministicMixin.__init__(self, clip_actions=False, role="cost_value")
         self.encoder = Encoder(task, layout, net)
         self.head = nn.Linear(self.encoder.out_features, 1)

@@ -71,6 +71,12 @@ def mlp(in_features: int, sizes: tuple[int, ...]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def init_flat_model(model: Model, layout: ObsLayout, action_space: gym.spaces.Box, device) -> None:
+    """skrl ``Model.__init__`` for a module that takes the adapter's flat observations."""
+    obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
+    Model.__init__(model, observation_space=obs_space, action_space=action_space, device=device)
+
+
 def conv_stack(in_shape: tuple[int, int, int], spec) -> tuple[nn.Sequential, int]:
     """ReLU conv stack over (C, H, W) inputs -> (module, flattened output size)."""
     layers: list[nn.Module] = []
@@ -148,8 +154,7 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         device: str | torch.device | None = None,
         net: str = "paper",
     ) -> None:
-        obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
-        Model.__init__(self, observation_space=obs_space, action_space=action_space, device=device)
+        init_flat_model(self, layout, action_space, device)
         GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, role="policy")
         DeterministicMixin.__init__(self, clip_actions=False, role="value")
         self.encoder = Encoder(task, layout, net)

@@ -27,7 +27,7 @@ from skrl.models.torch import DeterministicMixin, Model
 from torch import nn
 
 from sonogym.agents.adapter import ObsLayout
-from sonogym.agents.networks import VECTOR_MLP, Encoder, mlp
+from sonogym.agents.networks import VECTOR_MLP, Encoder, init_flat_model, mlp
 
 
 class CostCritic(DeterministicMixin, Model):
@@ -41,8 +41,7 @@ class CostCritic(DeterministicMixin, Model):
         device: str | torch.device | None = None,
         net: str = "paper",
     ) -> None:
-        obs_space = gym.spaces.Box(-float("inf"), float("inf"), (layout.size,))
-        Model.__init__(self, observation_space=obs_space, action_space=action_space, device=device)
+        init_flat_model(self, layout, action_space, device)
         DeterministicMixin.__init__(self, clip_actions=False, role="cost_critic")
         self.encoder = Encoder(task, layout, net)
         self.action_mlp = mlp(int(action_space.shape[0]), VECTOR_MLP)

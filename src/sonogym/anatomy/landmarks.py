@@ -20,16 +20,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from scipy import ndimage
 
 from sonogym.anatomy import labels as L
-
-if TYPE_CHECKING:
-    from sonogym.anatomy.patient import Patient
+from sonogym.anatomy.volume import Volume
 
 _SPINE_ORDER = ["T11", "T12", "L1", "L2", "L3", "L4", "L5", "S1"]
 _MAX_RADIUS = 0.0035  # m, a 7 mm screw
@@ -113,7 +110,7 @@ class Landmarks:
         return self.trajectories[(level, side)]
 
     @classmethod
-    def from_patient(cls, patient: Patient) -> Landmarks:
+    def from_patient(cls, patient: Volume) -> Landmarks:
         labels = patient.labels
         present = [lv for lv in _SPINE_ORDER if (labels == L.VERTEBRA_IDS[lv]).any()]
         if not any(lv in L.LUMBAR_VERTEBRAE for lv in present):
@@ -150,7 +147,7 @@ class Landmarks:
 class _BoneLookup:
     """Nearest-voxel label lookups at patient-frame points."""
 
-    def __init__(self, patient: Patient) -> None:
+    def __init__(self, patient: Volume) -> None:
         self.labels = patient.labels.numpy()
         self.to_voxel = patient.world_to_voxel_np
 

@@ -16,16 +16,12 @@ Surface command (DESIGN.md §4, §5): (x, z, yaw, tilt) ->
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 from scipy import ndimage
 
+from sonogym.anatomy.volume import Volume
 from sonogym.geometry import normalize
-
-if TYPE_CHECKING:
-    from sonogym.anatomy.patient import Patient
 
 #: HU halfway between air (-1000) and soft tissue (~0): where the skin crosses.
 SKIN_HU_THRESHOLD = -500.0
@@ -97,7 +93,7 @@ class SkinSurface:
 
     # ------------------------------------------------------------------ build
     @classmethod
-    def from_patient(cls, patient: Patient, normal_sigma: float = 0.008) -> SkinSurface:
+    def from_patient(cls, patient: Volume, normal_sigma: float = 0.008) -> SkinSurface:
         """Skin height from the first body voxel of each (x, z) column, refined to the sub-voxel
         crossing of the CT through -500 HU (partial-volume accurate)."""
         labels = patient.labels.numpy()

@@ -142,6 +142,11 @@ class TorchVectorEnv(VectorEnv):
             raise ValueError(f"actions contain NaN or inf (envs {bad[:10]})")
         return a
 
+    def current_info(self) -> dict[str, Any]:
+        """The info of every env's current state (after an autoreset: the new episodes' start
+        states, which ``step``'s own info, describing the finished transition, does not hold)."""
+        return self._get_info()
+
     def render(self) -> np.ndarray:
         """RGB frame (uint8, H x W x 3) of env 0."""
         return self._render_frame()

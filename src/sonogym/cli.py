@@ -158,11 +158,11 @@ def train(
     ] = None,
 ) -> None:
     """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory."""
-    from sonogym.agents.configs import check_supported
     from sonogym.agents.train import train as run_train
+    from sonogym.envs.registry import check_algo
 
     try:
-        check_supported(task, algo)
+        check_algo(task, algo)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None

@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from sonogym.agents.checkpoint import load_policy
-from sonogym.agents.configs import SUPPORTED, TASK_CONFIGS, check_supported
+from sonogym.agents.configs import task_config
 from sonogym.agents.train import train
+from sonogym.envs.registry import check_algo, get_task
 
 FAST_ENV = dict(phantom_spacing=0.002)
 
@@ -103,16 +104,16 @@ def test_every_pair_updates_weights(tmp_path, task, algo, steps, net):
 
 def test_unsupported_pairs_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"supported: \['ppo', 'a2c'\]"):
-        check_supported("navigation", "ppo-lag")
+        check_algo("navigation", "ppo-lag")
     with pytest.raises(ValueError, match="known tasks"):
-        check_supported("nope", "ppo")
-    assert SUPPORTED["surgery"] == ("ppo", "a2c", "ppo-sf", "ppo-lag")
+        check_algo("nope", "ppo")
+    assert get_task("surgery").training.algos == ("ppo", "a2c", "ppo-sf", "ppo-lag")
     with pytest.raises(ValueError, match="not supported on reconstruction"):
         _tiny("reconstruction", "ppo-sf", tmp_path / "sf", steps=16)
 
 
 def test_paper_hyperparameters():
-    nav, rec, sur = (TASK_CONFIGS[t] for t in ("navigation", "reconstruction", "surgery"))
+    nav, rec, sur = (task_config(t) for t in ("navigation", "reconstruction", "surgery"))
     assert (nav.ppo.rollouts, nav.ppo.learning_epochs, nav.ppo.mini_batches) == (32, 5, 32)
     assert (rec.ppo.rollouts, rec.ppo.learning_epochs, rec.ppo.mini_batches) == (32, 3, 4)
     assert (sur.ppo.rollouts, sur.ppo.learning_epochs, sur.ppo.mini_batches) == (16, 3, 32)

@@ -12,16 +12,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sonogym.envs.registry import get_task
 from sonogym.evaluation.curves import curve_over_seeds, discover_runs, plot_curves
-from sonogym.evaluation.episodes import TRACKS, load_log, log_path, save_log
-from sonogym.evaluation.report import METRICS, build_report, table1_columns
+from sonogym.evaluation.episodes import load_log, log_path, save_log
+from sonogym.evaluation.report import build_report, table1_columns, task_metrics
 
 TRIALS = 5
 T = 6
 
 
 def _metrics(task, rng, shift=0.0):
-    keys = [m.key for m in METRICS[task]] + ["return"]
+    keys = [m.key for m in task_metrics(task)] + ["return"]
     out = {k: (rng.random(TRIALS) * 10 + shift).astype(np.float32) for k in keys}
     if "safe_ratio" in out:
         out["safe_ratio"] = rng.random(TRIALS).astype(np.float32)
@@ -44,7 +45,7 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
     }
     (run / "config.json").write_text(json.dumps(cfg))
     rng = np.random.default_rng(hash((task, algo, seed, simulator)) % 2**32)
-    track = TRACKS[task]
+    track = get_task(task).track
     for proto in protocols:
         test_env = dict(env)
         if proto == "odt-patient":
@@ -92,8 +93,6 @@ def surgery_runs(tmp_path_factory):
 
 
 def test_table1_columns_are_the_papers_metrics_and_units():
-    from sonogym.evaluation.demo import DEMO_TASKS
-
     cols = [(m.label, m.unit, col) for m, col in table1_columns()]
     assert cols == [
         (label, unit, col)
@@ -105,11 +104,22 @@ def test_table1_columns_are_the_papers_metrics_and_units():
         )  # fmt: skip
         for col in ("IDT", "ODT")
     ]
-    keys = [m.key for m in METRICS["surgery"]]
+    keys = [m.key for m in task_metrics("surgery")]
     assert keys == ["side_error_mm", "insertion_error_mm", "rotation_error_deg", "safe_ratio"]
-    assert set(keys) == set(DEMO_TASKS["surgery"].metrics)  # names the env reports
-    for task in ("navigation", "reconstruction"):
-        assert {m.key for m in METRICS[task]} == set(DEMO_TASKS[task].metrics)
+    for task in ("navigation", "reconstruction", "surgery"):  # names the env reports
+        assert {m.key for m in task_metrics(task)} == _reported_metrics(task)
+
+
+def _reported_metrics(task: str) -> set[str]:
+    """The metric names an episode of ``task`` ends with (one-step episodes)."""
+    import torch
+
+    from sonogym.envs.registry import make_vec
+
+    env = make_vec(task, 1, obs_mode="state", phantom_spacing=0.002, episode_length=1)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(torch.zeros(1, *env.single_action_space.shape))
+    return set(info["final_info"]) - {"env_ids", "return"}
 
 
 def test_surgery_report_is_reproducible_and_pools_the_right_logs(surgery_runs, tmp_path):

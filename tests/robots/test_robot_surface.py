@@ -257,7 +257,7 @@ def test_a_jump_lags_then_the_reached_pose_matches_the_command(curved_back):
     assert bool((step.pos_error > 0.01).all()) and bool(step.reachable.all())
     settled = sc.settle(step.q, x1, z1, yaw, tilt, steps=60)
     assert bool(settled.reached.all())
-    mx, mz, myaw, mtilt = sc.measured_command(settled.probe_pos, settled.probe_rot)
+    mx, mz, myaw, mtilt = sc.skin.command_from_pose(settled.probe_pos, settled.probe_rot)
     assert torch.allclose(mx, x1, atol=1e-4) and torch.allclose(mz, z1, atol=1e-4)
     assert torch.allclose(myaw, yaw, atol=2e-3) and torch.allclose(mtilt, tilt, atol=2e-3)
     assert float(sc.skin_distance(settled.probe_pos).abs().max()) <= 1e-4

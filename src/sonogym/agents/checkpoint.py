@@ -1,16 +1,34 @@
-"""Load a trained policy from a run directory written by ``sonogym.agents.train``."""
+"""Checkpoints of a run directory written by ``sonogym.agents.train``: find them, load the
+trained networks, and act with them in an env as a ``Policy`` (``rl_policy``)."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from sonogym.agents.adapter import ObsLayout
+from sonogym.agents.adapter import ObsLayout, SkrlEnvAdapter
 from sonogym.agents.networks import SharedActorCritic, make_models
+from sonogym.envs.policy import StatelessPolicy
+
+_CKPT = re.compile(r"agent_(\d+)\.pt$")
+
+
+def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
+    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
+    found = []
+    for p in (Path(out) / "checkpoints").glob("agent_*.pt"):
+        m = _CKPT.search(p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    if not found:
+        return None
+    t, p = max(found)
+    return p, t
 
 
 def load_policy(
@@ -22,8 +40,6 @@ def load_policy(
     takes the adapter's flat observations (``config["obs_layout"]``); its deterministic action
     is ``module.act({"observations": x}, role="policy")[1]["mean_actions"]``.
     """
-    from sonogym.agents.train import latest_checkpoint
-
     run = Path(run)
     cfg_path = run / "config.json"
     if not cfg_path.exists():
@@ -51,7 +67,6 @@ def load_policy(
 def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
     """(cost critic in eval mode, filter threshold) of a ``ppo-sf`` run."""
     from sonogym.agents.safety_filter import CostCritic
-    from sonogym.agents.train import latest_checkpoint
 
     policy, cfg = load_policy(run, checkpoint, device)
     if cfg["algo"] != "ppo-sf":
@@ -70,3 +85,37 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
 def run_net(cfg: dict) -> str:
     """The conv trunk size a run was trained with (runs before the option existed: "paper")."""
     return cfg["task_config"].get("net", "paper")
+
+
+class RLPolicy(StatelessPolicy):
+    """A trained run acting deterministically (the Gaussian's mean action) on an env's
+    observations, flattened as in training; a ``ppo-sf`` run acts through its safety filter
+    (actions with Q_c > threshold become 0)."""
+
+    def __init__(self, model, adapter: SkrlEnvAdapter, critic=None, threshold: float = 0.5):
+        self.model = model
+        self.adapter = adapter
+        self.critic = critic
+        self.threshold = threshold
+
+    def act(self, obs, info) -> torch.Tensor:
+        x = self.adapter.flatten(obs)
+        action = self.model.act({"observations": x}, role="policy")[1]["mean_actions"]
+        if self.critic is not None:
+            from sonogym.agents.safety_filter import filter_actions
+
+            action, _ = filter_actions(self.critic, x, action, self.threshold)
+        return action
+
+
+def rl_policy(
+    run: str | Path, env, checkpoint: str | Path | None = None, device: str = "cpu"
+) -> RLPolicy:
+    """The run's policy acting in ``env`` (an env of the run's task)."""
+    model, cfg = load_policy(run, checkpoint, device)
+    tc = cfg["task_config"]
+    adapter = SkrlEnvAdapter(env, tc["obs_downsample"], tc["obs_scales"])
+    if cfg["algo"] == "ppo-sf":
+        critic, threshold = load_cost_critic(run, checkpoint, device)
+        return RLPolicy(model, adapter, critic, threshold)
+    return RLPolicy(model, adapter)

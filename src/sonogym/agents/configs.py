@@ -1,7 +1,9 @@
-"""Per-task RL configs (paper's PPO and A2C tables) and the skrl agent factory.
+"""Resolved RL run configs (the task registry's defaults after overrides) and the skrl agent
+factory.
 
-Hyperparameters: the paper's appendix tables ``tab:ppo_hype`` and ``tab:a2c_hype``; what the
-tables leave open comes from the reference (reference_implementation.md §7.1): KLAdaptiveLR with
+Hyperparameters live with each task (``sonogym.envs.<task>.SPEC.training``): the paper's
+appendix tables ``tab:ppo_hype`` and ``tab:a2c_hype``; what the tables leave open comes from
+the reference (reference_implementation.md §7.1): KLAdaptiveLR with
 kl_threshold 0.008 for both algorithms, values standardised by skrl's RunningStandardScaler,
 observations not normalised, entropy scale 0, 128 envs (paper; the reference's default is 64).
 
@@ -27,60 +29,16 @@ from typing import Any
 
 import torch
 
-#: Algorithm names (DESIGN.md §5).
-ALGOS = ("ppo", "a2c", "ppo-sf", "ppo-lag")
-#: Algorithms each task supports.
-SUPPORTED: dict[str, tuple[str, ...]] = {
-    "navigation": ("ppo", "a2c"),
-    "reconstruction": ("ppo", "a2c"),
-    "surgery": ("ppo", "a2c", "ppo-sf", "ppo-lag"),
-}
-#: Gymnasium ids of the tasks.
-ENV_IDS = {
-    "navigation": "SonoGym/Navigation-v0",
-    "reconstruction": "SonoGym/Reconstruction-v0",
-    "surgery": "SonoGym/Surgery-v0",
-}
+from sonogym.envs.registry import check_algo, get_task
+from sonogym.envs.spec import A2CParams, PPOParams, SafetyParams
 
-
-@dataclass(frozen=True)
-class PPOParams:
-    """skrl PPO settings (paper Tab. ppo_hype)."""
-
-    rollouts: int  # env steps per env between updates
-    learning_epochs: int
-    mini_batches: int
-    learning_rate: float  # initial, adapted by KLAdaptiveLR
-    value_clip: float  # clip of the predicted value's change (value units, standardised)
-    discount_factor: float = 0.99
-    gae_lambda: float = 0.95
-    kl_threshold: float = 0.008  # KLAdaptiveLR target KL (not early stopping)
-    grad_norm_clip: float = 1.0
-    ratio_clip: float = 0.2
-    value_loss_scale: float = 1.0
-    entropy_loss_scale: float = 0.0  # reference
-    time_limit_bootstrap: bool = True  # see the module docstring
-
-
-@dataclass(frozen=True)
-class A2CParams:
-    """skrl A2C settings (paper Tab. a2c_hype; A2C has no epochs: the table's
-    ``learning_epochs`` is not an A2C setting and is not used)."""
-
-    rollouts: int  # env steps per env between updates
-    mini_batches: int
-    learning_rate: float = 1e-4  # initial, adapted by KLAdaptiveLR (reference)
-    discount_factor: float = 0.99
-    gae_lambda: float = 0.95
-    kl_threshold: float = 0.008
-    grad_norm_clip: float = 1.0
-    entropy_loss_scale: float = 0.0
-    time_limit_bootstrap: bool = True
+__all__ = ["A2CParams", "PPOParams", "TaskRLConfig", "build_agent", "task_config", "to_jsonable"]
 
 
 @dataclass(frozen=True)
 class TaskRLConfig:
-    """Everything a training run of one task needs besides the algorithm's own numbers."""
+    """Everything a training run of one task needs besides the algorithm's own numbers:
+    the task's registry defaults (``sonogym.envs.spec.TrainingDefaults``) after overrides."""
 
     task: str
     ppo: PPOParams
@@ -88,66 +46,45 @@ class TaskRLConfig:
     timesteps: int  # env steps per env (reference trainer timesteps)
     num_envs: int = 128  # paper
     obs_downsample: int = 1  # integer average-pooling factor of image observations
-    net: str = "paper"  # conv trunk size: "paper" or "small" (networks.NETS)
+    net: str = "paper"  # conv trunk size: a key of the task's ``trunks`` ("paper", "small")
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
+    init_log_std: float = 0.0  # initial log sigma of the Gaussian policy, action units
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
-    cost_learning_rate: float = 1e-4  # ppo-sf: cost critic's Adam learning rate (reference)
-    cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (reference; cost in [0, 1])
+    cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
+    cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (cost in [0, 1])
     cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
-    pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd (reference)
+    pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd
 
     @property
     def env_id(self) -> str:
-        return ENV_IDS[self.task]
+        return get_task(self.task).env_id
 
     def params(self, algo: str) -> PPOParams | A2CParams:
-        check_supported(self.task, algo)
+        check_algo(self.task, algo)
         return self.a2c if algo == "a2c" else self.ppo
 
 
-TASK_CONFIGS: dict[str, TaskRLConfig] = {
-    "navigation": TaskRLConfig(
-        task="navigation",
-        ppo=PPOParams(
-            rollouts=32, learning_epochs=5, mini_batches=32, learning_rate=1e-4, value_clip=0.2
-        ),
-        a2c=A2CParams(rollouts=16, mini_batches=32),
-        timesteps=500_000,
-    ),
-    "reconstruction": TaskRLConfig(
-        task="reconstruction",
-        ppo=PPOParams(
-            rollouts=32, learning_epochs=3, mini_batches=4, learning_rate=3e-4, value_clip=0.1
-        ),
-        a2c=A2CParams(rollouts=64, mini_batches=32),
-        timesteps=500_000,
-    ),
-    "surgery": TaskRLConfig(
-        task="surgery",
-        ppo=PPOParams(
-            rollouts=16, learning_epochs=3, mini_batches=32, learning_rate=1e-4, value_clip=0.1
-        ),
-        a2c=A2CParams(rollouts=64, mini_batches=4),
-        timesteps=200_000,
-    ),
-}
-
-
-def check_supported(task: str, algo: str) -> None:
-    """Raise ``ValueError`` for an unknown task or an algorithm the task does not support."""
-    if task not in SUPPORTED:
-        raise ValueError(f"unknown task {task!r}; known tasks: {sorted(SUPPORTED)}")
-    if algo not in SUPPORTED[task]:
-        raise ValueError(
-            f"algorithm {algo!r} is not supported on {task}; supported: {list(SUPPORTED[task])}"
-        )
-
-
 def task_config(task: str, **overrides) -> TaskRLConfig:
-    """The task's config with fields replaced (``dataclasses.replace`` semantics)."""
-    check_supported(task, "ppo")
-    return dataclasses.replace(TASK_CONFIGS[task], **overrides)
+    """The task's registry defaults as a ``TaskRLConfig``, with fields replaced
+    (``dataclasses.replace`` semantics); an unknown task names the known ones."""
+    t = get_task(task).training
+    safety = t.safety or SafetyParams()
+    base = TaskRLConfig(
+        task=task,
+        ppo=t.ppo,
+        a2c=t.a2c,
+        timesteps=t.timesteps,
+        num_envs=t.num_envs,
+        obs_scales=dict(t.obs_scales),
+        reward_scale=t.reward_scale,
+        init_log_std=t.init_log_std,
+        cost_learning_rate=safety.cost_learning_rate,
+        cost_threshold=safety.cost_threshold,
+        cost_limit=safety.cost_limit,
+        pid_gains=safety.pid_gains,
+    )
+    return dataclasses.replace(base, **overrides)
 
 
 class RewardScale:

@@ -1,9 +1,10 @@
 """Per-task shared-trunk actor-critic networks (skrl models), as the paper and reference use.
 
 One module holds one encoder ("trunk") with two heads: a Gaussian policy head (mean, plus a
-state-independent log-std parameter initialised at 0, clipped to [-20, 2] by skrl; actions are
-not clipped, the env clips them) and a scalar value head. skrl calls the same object as
-``models["policy"]`` and ``models["value"]`` (reference: ``separate: False``).
+state-independent log-std parameter initialised at the task's ``init_log_std`` (task
+registry), clipped to [-20, 2] by skrl; actions are not clipped, the env clips them) and a
+scalar value head. skrl calls the same object as ``models["policy"]`` and ``models["value"]``
+(reference: ``separate: False``).
 
 Inputs are the adapter's flat observations; ``ObsLayout`` un-flattens them. Architectures
 (reference_implementation.md §7.1; ReLU convs without padding, ELU MLPs):
@@ -38,29 +39,19 @@ from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
 from torch import nn
 
 from sonogym.agents.adapter import ObsLayout
+from sonogym.envs.registry import get_task
 
-#: (out_channels, kernel, stride) per conv layer.
-CONV4 = ((32, 8, 2), (64, 4, 2), (64, 4, 2), (64, 3, 1))
-CONV3 = ((32, 8, 2), (64, 4, 2), (64, 3, 1))
 VECTOR_MLP = (128, 128, 64)
 TRUNK_MLP = (512, 256, 128)
-TASK_CONVS = {"navigation": CONV4, "reconstruction": CONV3, "surgery": CONV3}
-SMALL_CONV4 = ((16, 5, 2), (32, 3, 2), (32, 3, 2), (32, 3, 1))
-SMALL_CONV3 = ((16, 5, 2), (32, 3, 2), (32, 3, 1))
-#: Conv trunks per network size and task.
-NETS = {
-    "paper": TASK_CONVS,
-    "small": {"navigation": SMALL_CONV4, "reconstruction": SMALL_CONV3, "surgery": SMALL_CONV3},
-}
 
 
 def conv_spec(task: str, net: str = "paper"):
-    """The (out_channels, kernel, stride) layers of ``task``'s conv trunk for size ``net``."""
-    if net not in NETS:
-        raise ValueError(f"unknown net {net!r}; choose from {list(NETS)}")
-    if task not in TASK_CONVS:
-        raise ValueError(f"unknown task {task!r}; known tasks: {sorted(TASK_CONVS)}")
-    return NETS[net][task]
+    """The (out_channels, kernel, stride) layers of ``task``'s conv trunk for size ``net``
+    (the task registry's ``TrainingDefaults.trunks``)."""
+    trunks = get_task(task).training.trunks
+    if net not in trunks:
+        raise ValueError(f"unknown net {net!r}; choose from {list(trunks)}")
+    return trunks[net]
 
 
 def mlp(in_features: int, sizes: tuple[int, ...]) -> nn.Sequential:
@@ -105,14 +96,20 @@ class Encoder(nn.Module):
         convs = conv_spec(task, net)
         self.layout = layout
         self.branches = nn.ModuleDict()
-        self._split_pose = task == "surgery" and "pose" in layout.keys
+        # vector entries split into parts with one MLP each (surgery: position + quaternion)
+        self.splits = {
+            k: v for k, v in get_task(task).training.vector_splits.items() if k in layout.keys
+        }
         total = 0
         for key, shape in zip(layout.keys, layout.shapes, strict=True):
             if len(shape) == 3:
                 net, n = conv_stack(shape, convs)
-            elif len(shape) == 1 and key == "pose" and self._split_pose:
-                net = nn.ModuleDict({"pos": mlp(3, VECTOR_MLP), "quat": mlp(4, VECTOR_MLP)})
-                n = 2 * VECTOR_MLP[-1]
+            elif len(shape) == 1 and key in self.splits:
+                parts = self.splits[key]
+                if sum(size for _, size in parts) != shape[0]:
+                    raise ValueError(f"entry {key!r} of size {shape[0]} cannot split as {parts}")
+                net = nn.ModuleDict({name: mlp(size, VECTOR_MLP) for name, size in parts})
+                n = len(parts) * VECTOR_MLP[-1]
             elif len(shape) == 1:
                 net, n = mlp(shape[0], VECTOR_MLP), VECTOR_MLP[-1]
             else:
@@ -127,8 +124,12 @@ class Encoder(nn.Module):
         feats = []
         for key in self.layout.keys:
             net, x = self.branches[_name(key)], obs[key]
-            if isinstance(net, nn.ModuleDict):  # surgery pose: position (m) + quaternion
-                feats += [net["pos"](x[:, :3]), net["quat"](x[:, 3:])]
+            if key in self.splits:  # e.g. surgery pose: position (m) + quaternion
+                sizes = [size for _, size in self.splits[key]]
+                parts = torch.split(x, sizes, dim=-1)
+                feats += [
+                    net[name](p) for (name, _), p in zip(self.splits[key], parts, strict=True)
+                ]
             else:
                 feats.append(net(x))
         return self.trunk(torch.cat(feats, dim=-1))
@@ -153,6 +154,7 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         action_space: gym.spaces.Box,
         device: str | torch.device | None = None,
         net: str = "paper",
+        init_log_std: float = 0.0,
     ) -> None:
         init_flat_model(self, layout, action_space, device)
         GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, role="policy")
@@ -160,7 +162,7 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         self.encoder = Encoder(task, layout, net)
         n_act = int(action_space.shape[0])
         self.mean_head = nn.Linear(self.encoder.out_features, n_act)
-        self.log_std = nn.Parameter(torch.zeros(n_act))
+        self.log_std = nn.Parameter(torch.full((n_act,), float(init_log_std)))
         self.value_head = nn.Linear(self.encoder.out_features, 1)
         self._cache: tuple[torch.Tensor, bool, torch.Tensor] | None = None
         self.to(self.device)
@@ -191,8 +193,13 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
 
 
 def make_models(
-    task: str, layout: ObsLayout, action_space: gym.spaces.Box, device=None, net: str = "paper"
+    task: str,
+    layout: ObsLayout,
+    action_space: gym.spaces.Box,
+    device=None,
+    net: str = "paper",
+    init_log_std: float = 0.0,
 ) -> dict[str, Model]:
     """skrl ``models`` dict: the same ``SharedActorCritic`` as "policy" and "value"."""
-    model = SharedActorCritic(task, layout, action_space, device, net)
+    model = SharedActorCritic(task, layout, action_space, device, net, init_log_std)
     return {"policy": model, "value": model}

@@ -1,4 +1,5 @@
-"""Train a skrl agent (PPO or A2C) on a SonoGym task: ``train(task, algo, ...)``.
+"""Train a skrl agent on a SonoGym task: ``train(task, algo, ...)`` with algo ``ppo``, ``a2c``,
+``ppo-sf`` or ``ppo-lag`` (the task's registry entry lists what it supports).
 
 Writes into ``out/``:
 
@@ -22,9 +23,7 @@ optimizer, standardiser; the envs restart from a fresh reset and the rollout mem
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,12 +31,11 @@ from typing import Any
 import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
-from sonogym.agents.configs import TaskRLConfig, build_agent, check_supported, task_config
+from sonogym.agents.checkpoint import latest_checkpoint
+from sonogym.agents.configs import TaskRLConfig, build_agent, task_config
 from sonogym.agents.configs import to_jsonable as _jsonable
 from sonogym.agents.networks import make_models
-from sonogym.envs import TASKS
-
-_CKPT = re.compile(r"agent_(\d+)\.pt$")
+from sonogym.envs.registry import check_algo, make_vec
 
 
 @dataclass(frozen=True)
@@ -48,23 +46,9 @@ class TrainResult:
 
 
 def make_env(cfg: TaskRLConfig, num_envs: int, device: str | torch.device):
-    """The task's batched env with ``cfg.env_kwargs`` (device set here)."""
-    module = importlib.import_module(TASKS[cfg.env_id])
-    cls = getattr(module, cfg.env_id.split("/")[1].split("-")[0] + "Env")
-    return cls(num_envs=num_envs, **{**cfg.env_kwargs, "device": str(device)})
-
-
-def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
-    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
-    found = []
-    for p in (Path(out) / "checkpoints").glob("agent_*.pt"):
-        m = _CKPT.search(p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    if not found:
-        return None
-    t, p = max(found)
-    return p, t
+    """The task's batched env (``gymnasium.make_vec``) with ``cfg.env_kwargs`` (device set
+    here)."""
+    return make_vec(cfg.task, num_envs, **{**cfg.env_kwargs, "device": str(device)})
 
 
 def train(
@@ -94,7 +78,7 @@ def train(
         seed: seeds torch and the envs' first reset.
         out: run directory (default ``runs/<task>-<algo>-s<seed>``).
         patients, simulator, obs_downsample, env_kwargs: override the task config's env options.
-        net: conv trunk size, "paper" (default) or "small" (``networks.NETS``).
+        net: conv trunk size, "paper" (default) or "small" (the task's registry ``trunks``).
         resume: continue from the newest checkpoint in ``out``; without it an ``out`` that holds
             checkpoints is refused.
         checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
@@ -104,7 +88,7 @@ def train(
     from skrl.trainers.torch import SequentialTrainerCfg
     from tqdm import tqdm
 
-    check_supported(task, algo)
+    check_algo(task, algo)
     base = task_config(task)
     kw = dict(base.env_kwargs)
     kw.update(env_kwargs or {})
@@ -142,7 +126,9 @@ def train(
     torch.manual_seed(seed)
     env = make_env(cfg, cfg.num_envs, device)
     adapter = SkrlEnvAdapter(env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start)
-    models = make_models(task, adapter.layout, adapter.action_space, device, cfg.net)
+    models = make_models(
+        task, adapter.layout, adapter.action_space, device, cfg.net, cfg.init_log_std
+    )
     if algo == "ppo-sf":
         from sonogym.agents.safety_filter import CostCritic
 

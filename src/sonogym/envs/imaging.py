@@ -13,10 +13,14 @@ at construction, on CT slices at fixed pseudo-random probe poses over every pati
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
 import torch
 
-SIMULATORS = ("physical", "sonogym", "learned")
+#: Ultrasound simulators of an env: the model-based presets or the learned nets.
+SimulatorName = Literal["physical", "sonogym", "learned"]
+SIMULATORS: tuple[str, ...] = get_args(SimulatorName)
 DEFAULT_LEARNED_NETS = (0, 1, 2, 3, 4)
 
 

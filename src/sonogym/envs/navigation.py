@@ -28,6 +28,7 @@ in [1.5, 3.5] rad; envs spread over the configured patients (env i -> patient i 
 ``return``.
 
 ``info`` every step: ``state`` (N, 6) = (p in m, q in rad) of {U} in {G}; ``command`` (N, 3);
+``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
 ``reachable`` (N,) bool from the arm; ``cost`` (N,) zeros (no safety constraint in this task).
 """
 
@@ -35,17 +36,33 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 import torch
 from gymnasium import spaces
 
+from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
-from sonogym.envs.imaging import learned_nets_tuple
-from sonogym.envs.scene import ProbeScene
+from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.spec import (
+    CONV4,
+    SMALL_CONV4,
+    A2CParams,
+    Demo,
+    Feature,
+    Metric,
+    PPOParams,
+    TaskSpec,
+    Track,
+    TrainingDefaults,
+)
 from sonogym.geometry import relative_pose, wrap_angle
+from sonogym.robots.description import ArmName
 
-OBS_MODES = ("us", "ct", "labels", "state")
+ObsMode = Literal["us", "ct", "labels", "state"]
+OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 
 
 @dataclass(frozen=True)
@@ -54,12 +71,12 @@ class NavigationConfig:
 
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: str = "physical"  # "physical" | "sonogym" | "learned"
+    simulator: SimulatorName = "physical"
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    obs_mode: str = "us"  # "us" | "ct" | "labels" | "state"
+    obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
-    robot: str | None = "kuka_med14"  # probe arm; None: the probe sits exactly at the command
+    robot: ArmName | None = "kuka_med14"  # probe arm; None: an ideal probe at the command
     target_vertebra: str = "L4"
     goal_yaw: float = math.pi  # rad, transverse image plane
     start_half_extent: float = 0.065  # m: start (x, z) uniform in +-this around {G}
@@ -206,6 +223,7 @@ class NavigationEnv(TorchVectorEnv):
         return {
             "state": self._state.clone(),
             "command": self.command.clone(),
+            "measured_command": torch.stack(self.scene.measured_command(), -1).float(),
             "reachable": self.scene.reachable.clone(),
             "cost": torch.zeros(self.num_envs, device=self.device),
         }
@@ -233,3 +251,43 @@ class NavigationEnv(TorchVectorEnv):
 def make_single(**kwargs) -> SingleEnv:
     """``gymnasium.make("SonoGym/Navigation-v0")``: one env with NumPy I/O."""
     return SingleEnv(NavigationEnv, **kwargs)
+
+
+def expert(env: NavigationEnv, info: dict) -> torch.Tensor:
+    """The paper's expert on ``env`` (``navigation_expert`` from the privileged state)."""
+    return navigation_expert(info["state"], action_scale=env.cfg.action_scale)
+
+
+SPEC = TaskSpec(
+    name="navigation",
+    env_id="SonoGym/Navigation-v0",
+    env_cls=NavigationEnv,
+    config_cls=NavigationConfig,
+    action_names=("dx", "dy", "dalpha"),
+    expert=expert,
+    expert_label="expert",
+    metrics=(
+        Metric("position_error_mm", "position error", "mm"),
+        Metric("angle_error_deg", "rotation error", "deg"),
+    ),
+    track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
+    demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
+    training=TrainingDefaults(
+        algos=("ppo", "a2c"),
+        ppo=PPOParams(
+            rollouts=32, learning_epochs=5, mini_batches=32, learning_rate=1e-4, value_clip=0.2
+        ),
+        a2c=A2CParams(rollouts=16, mini_batches=32),
+        timesteps=500_000,
+        trunks={"paper": CONV4, "small": SMALL_CONV4},
+    ),
+    features=(
+        Feature(
+            "observation.images.us",
+            "image",
+            (1, 200, 150),
+            ("channel", "height", "width"),
+            lambda obs, info: obs,
+        ),
+    ),
+)

@@ -68,6 +68,7 @@ configured patients (env i -> patient i % P).
 sum ||(dx, dy)|| in mm; ``return``.
 
 ``info`` every step: ``state`` (N, 6); ``command`` (N, 4) = (x, z, yaw, tilt);
+``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
 ``coverage`` (N,); ``objective`` (N,) float64, F so far; ``covered_voxels`` (N,) |M|;
 ``visible_points`` / ``sensed_points`` (N,) target surface points in this step's image before
 and after dropout; ``reachable`` (N,) bool; ``cost`` (N,) zeros.
@@ -80,6 +81,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 import torch
@@ -87,13 +89,27 @@ from gymnasium import spaces
 
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
+from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
-from sonogym.envs.imaging import learned_nets_tuple
-from sonogym.envs.scene import ProbeScene
+from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.spec import (
+    CONV3,
+    SMALL_CONV3,
+    A2CParams,
+    Demo,
+    Metric,
+    PPOParams,
+    TaskSpec,
+    Track,
+    TrainingDefaults,
+)
 from sonogym.geometry import normalize, relative_pose, wrap_angle
+from sonogym.robots.description import ArmName
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
 
-OBS_MODES = ("reconstruction", "state")
+ObsMode = Literal["reconstruction", "state"]
+OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 
 
 @dataclass(frozen=True)
@@ -102,12 +118,12 @@ class ReconstructionConfig:
 
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: str = "physical"  # preset of env.scene.observe("us") (viewing only; not sensed)
+    simulator: SimulatorName = "physical"  # of env.scene.observe("us") (viewing only; not sensed)
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    obs_mode: str = "reconstruction"  # "reconstruction" (Dict) | "state"
+    obs_mode: ObsMode = "reconstruction"  # Dict observation, or the privileged state
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
-    robot: str | None = "kuka_med14"  # probe arm; None: the probe sits exactly at the command
+    robot: ArmName | None = "kuka_med14"  # probe arm; None: an ideal probe at the command
     target_vertebra: str = "L4"
     start_half_extent: float = 0.015  # m: start (x, z) uniform in +-this around the vertebra
     start_yaw: tuple[float, float] = (1.47, 1.67)  # rad, 1.57 +- 0.1 (sagittal image)
@@ -461,6 +477,7 @@ class ReconstructionEnv(TorchVectorEnv):
         return {
             "state": self.state(),
             "command": self.command.clone(),
+            "measured_command": torch.stack(self.scene.measured_command(), -1).float(),
             "coverage": self.coverage(),
             "covered_voxels": self.covered.clone(),
             "objective": self.objective.clone(),
@@ -569,3 +586,34 @@ def heuristic_raster(env: ReconstructionEnv, info: dict | None = None, **kwargs)
 def make_single(**kwargs) -> SingleEnv:
     """``gymnasium.make("SonoGym/Reconstruction-v0")``: one env with NumPy I/O."""
     return SingleEnv(ReconstructionEnv, **kwargs)
+
+
+SPEC = TaskSpec(
+    name="reconstruction",
+    env_id="SonoGym/Reconstruction-v0",
+    env_cls=ReconstructionEnv,
+    config_cls=ReconstructionConfig,
+    action_names=("dx", "dy", "dalpha", "dbeta"),
+    expert=heuristic_raster,
+    expert_label="heuristic",
+    metrics=(
+        Metric("coverage", "coverage ratio", "%", 100.0, better="higher"),
+        Metric("total_rotation_deg", "total rotation angle", "deg"),
+        Metric("trajectory_length_mm", "trajectory length", "mm"),
+    ),
+    track=Track(
+        ("x", "z", "yaw", "tilt"), ("mm", "mm", "deg", "deg"), probe_track, plane=("x", "z")
+    ),
+    demo=Demo(
+        image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
+    ),
+    training=TrainingDefaults(
+        algos=("ppo", "a2c"),
+        ppo=PPOParams(
+            rollouts=32, learning_epochs=3, mini_batches=4, learning_rate=3e-4, value_clip=0.1
+        ),
+        a2c=A2CParams(rollouts=64, mini_batches=32),
+        timesteps=500_000,
+        trunks={"paper": CONV3, "small": SMALL_CONV3},
+    ),
+)

@@ -71,14 +71,29 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 import torch
 from gymnasium import spaces
 
+from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
-from sonogym.envs.imaging import learned_nets_tuple
-from sonogym.envs.surgery_scene import SIDES, SurgeryScene
+from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.envs.spec import (
+    CONV3,
+    SMALL_CONV3,
+    A2CParams,
+    Demo,
+    Feature,
+    Metric,
+    PPOParams,
+    SafetyParams,
+    TaskSpec,
+    Track,
+    TrainingDefaults,
+)
+from sonogym.envs.surgery_scene import SIDES, Side, SurgeryScene
 from sonogym.geometry import (
     axis_angle_from_matrix,
     in_frame,
@@ -86,7 +101,8 @@ from sonogym.geometry import (
     quat_from_matrix,
 )
 
-OBS_MODES = ("us", "ct", "labels", "state")
+ObsMode = Literal["us", "ct", "labels", "state"]
+OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 FREE, DRILL, UNSAFE = 0, 1, 2
 
 #: The paper's joint randomisation for training (rad, uniform +-).
@@ -103,13 +119,13 @@ class SurgeryConfig:
 
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: str = "physical"  # "physical" | "sonogym" | "learned"
+    simulator: SimulatorName = "physical"
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    obs_mode: str = "us"  # "us" | "ct" | "labels" | "state"
+    obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
     target_vertebra: str = "L4"
-    side: str = "right"  # drilled pedicle, the patient's side: "right" | "left"
+    side: Side = "right"  # drilled pedicle, the patient's side
     skin_distance: float = 0.05  # m, l: p_l = [0, 0, -l] in {G} (appendix: 50 mm)
     corridor_margin: float = 0.002  # m, d = 2 (r + corridor_margin)
     start_height: float = 0.09  # m, nominal drill-tip start above p_l (paper: C_free)
@@ -479,71 +495,79 @@ class SurgeryEnv(TorchVectorEnv):
         out["safe_ratio"] = self._safe_steps[env_ids] / steps
         return out
 
+    def volume(self, env: int) -> torch.Tensor:
+        """(E, H, W) image volume of env ``env`` (imaged at its last reset)."""
+        return self._image[env]
+
     def _render_frame(self) -> np.ndarray:
-        return surgery_frame(self, self._state[:1, :3].cpu().numpy())
-
-
-# ----------------------------------------------------------------------------- drawing
-
-
-def side_view(
-    path: np.ndarray, half_width: float, skin_distance: float, size: int = 200
-) -> np.ndarray:
-    """RGB side view in {G} (horizontal p_x, vertical p_z pointing down, -150 ... +20 mm):
-    the corridor C_drill (green outline), the planned trajectory (green), the boundary of
-    C_free (gray), the tip's path (red) and the current tip (yellow). Metres in, uint8 out."""
-    img = np.full((size, size, 3), 30, np.uint8)
-    z_lo, z_hi, x_half = -0.15, 0.02, 0.085
-
-    def px(x, z):
-        i = np.clip(((z - z_lo) / (z_hi - z_lo) * (size - 1)).round().astype(int), 0, size - 1)
-        j = np.clip(((x + x_half) / (2 * x_half) * (size - 1)).round().astype(int), 0, size - 1)
-        return i, j
-
-    xs = np.linspace(-x_half, x_half, size)
-    i, j = px(xs, np.full(size, -skin_distance))
-    img[i, j] = (110, 110, 110)
-    zs = np.linspace(z_lo, 0.0, size)
-    i, j = px(np.zeros(size), zs)
-    img[i, j] = (40, 160, 40)
-    zc = np.linspace(-skin_distance, 0.0, size)
-    for x in (-half_width, half_width):
-        i, j = px(np.full(size, x), zc)
-        img[i, j] = (60, 230, 60)
-    i, j = px(np.linspace(-half_width, half_width, 20), np.zeros(20))
-    img[i, j] = (60, 230, 60)
-    if len(path):
-        i, j = px(path[:, 0], path[:, 2])
-        img[i, j] = (230, 40, 40)
-        i, j = px(path[-1:, 0], path[-1:, 2])
-        img[max(i[0] - 2, 0) : i[0] + 3, max(j[0] - 2, 0) : j[0] + 3] = (240, 220, 40)
-    return img
-
-
-def volume_strip(vol: torch.Tensor, gap: int = 1) -> torch.Tensor:
-    """(E, H, W) volume -> (H, E W + (E - 1) gap) image: the elevation slices side by side."""
-    if vol.dtype == torch.uint8:
-        vol = vol.float() / max(float(vol.max()), 1.0)
-    e, h, _ = vol.shape
-    sep = torch.zeros(h, gap, dtype=vol.dtype, device=vol.device)
-    parts = []
-    for i in range(e):
-        parts += [vol[i], sep] if i < e - 1 else [vol[i]]
-    return torch.cat(parts, 1)
-
-
-def surgery_frame(
-    env: SurgeryEnv, path: np.ndarray, image: torch.Tensor | None = None, zoom: int = 3
-) -> np.ndarray:
-    """Env 0's RGB frame: a 2-D image in [0, 1] (default: its volume's slices side by side),
-    upsampled ``zoom`` times, beside the side view of the tip's ``path`` in {G} (metres)."""
-    img = volume_strip(env._image[0]) if image is None else image
-    u = (img.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy().repeat(zoom, 0).repeat(zoom, 1)
-    u = np.repeat(u[..., None], 3, -1)
-    side = side_view(path, float(env.half_width[0]), env.cfg.skin_distance, size=u.shape[0])
-    return np.concatenate([u, np.zeros((u.shape[0], 4, 3), np.uint8), side], 1)
+        return frames.surgery_frame(self, self._state[:1, :3].cpu().numpy())
 
 
 def make_single(**kwargs) -> SingleEnv:
     """``gymnasium.make("SonoGym/Surgery-v0")``: one env with NumPy I/O."""
     return SingleEnv(SurgeryEnv, **kwargs)
+
+
+def expert(env: SurgeryEnv, info: dict) -> torch.Tensor:
+    """The paper's expert on ``env`` (``surgery_expert`` from the privileged state)."""
+    return surgery_expert(
+        info["state"],
+        info["radius"],
+        skin_distance=env.cfg.skin_distance,
+        action_scale=env.cfg.action_scale,
+    )
+
+
+def drill_track(env, info) -> torch.Tensor:
+    """Drill tip in the goal frame {G} (mm): z along the planned trajectory, 0 at the target."""
+    return info["state"][:, :3] * 1e3
+
+
+def _slice_feature(i: int) -> Feature:
+    return Feature(
+        f"observation.images.slice_{i}",
+        "image",
+        (1, 50, 37),
+        ("channel", "height", "width"),
+        lambda obs, info: obs["image"][:, i : i + 1],
+    )
+
+
+SPEC = TaskSpec(
+    name="surgery",
+    env_id="SonoGym/Surgery-v0",
+    env_cls=SurgeryEnv,
+    config_cls=SurgeryConfig,
+    action_names=("dx", "dy", "dz", "wx", "wy", "wz"),
+    expert=expert,
+    expert_label="expert",
+    metrics=(
+        Metric("side_error_mm", "side err", "mm"),
+        Metric("insertion_error_mm", "insert err", "mm"),
+        Metric("rotation_error_deg", "rot err", "deg"),
+        Metric("safe_ratio", "safe ratio", "%", 100.0, better="higher"),
+    ),
+    track=Track(("x", "y", "z"), ("mm", "mm", "mm"), drill_track, plane=("x", "z")),
+    demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
+    training=TrainingDefaults(
+        algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),
+        ppo=PPOParams(
+            rollouts=16, learning_epochs=3, mini_batches=32, learning_rate=1e-4, value_clip=0.1
+        ),
+        a2c=A2CParams(rollouts=64, mini_batches=4),
+        timesteps=200_000,
+        trunks={"paper": CONV3, "small": SMALL_CONV3},
+        vector_splits={"pose": (("pos", 3), ("quat", 4))},
+        safety=SafetyParams(),
+    ),
+    features=(
+        *(_slice_feature(i) for i in range(5)),
+        Feature(
+            "observation.state",
+            "float32",
+            (7,),
+            ("x", "y", "z", "qw", "qx", "qy", "qz"),
+            lambda obs, info: obs["pose"],
+        ),
+    ),
+)

@@ -25,21 +25,21 @@ sliced and simulated once per reset (``observe``) and reused by the env.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import replace
-from functools import cached_property
+from typing import Literal, get_args
 
 import numpy as np
 import torch
 
-from sonogym.anatomy import SkinSurface
-from sonogym.envs.imaging import DEFAULT_LEARNED_NETS, NetChoice, build_simulator, check_simulator
-from sonogym.envs.patients import resolve_patients
-from sonogym.envs.scene import image_observation
+from sonogym.envs.imaging import DEFAULT_LEARNED_NETS
+from sonogym.envs.scene import PatientScene
 from sonogym.geometry import in_frame, matrix_from_axis_angle, normalize
+from sonogym.ultrasound import ProbeGeometry
 
-SIDES = ("right", "left")
+#: The drilled pedicle, the patient's side.
+Side = Literal["right", "left"]
+SIDES: tuple[str, ...] = get_args(Side)
 
 #: Joint speed used only to *solve* the nominal configurations at construction (rad/s): the
 #: solution is the same as with the real limits, found in fewer iterations.
@@ -71,18 +71,7 @@ def mirrored(placement):
     return replace(placement, offset=(-ox, oy, oz), heading=placement.heading + math.pi)
 
 
-@contextlib.contextmanager
-def _bases(arm, base: torch.Tensor):
-    """Temporarily give ``arm`` the base poses of a subset of envs."""
-    old = arm.base_pose
-    arm.set_base_pose(base)
-    try:
-        yield arm
-    finally:
-        arm.set_base_pose(old)
-
-
-class SurgeryScene:
+class SurgeryScene(PatientScene):
     """Patients, goal frames, the probe arm, the drill arm and 3-D imaging for N envs.
 
     Args:
@@ -128,25 +117,26 @@ class SurgeryScene:
     ) -> None:
         from sonogym.robots import SURGERY_DRILL_BASE, SURGERY_PROBE_BASE
 
-        check_simulator(simulator, learned_nets)
-        self.learned_nets = tuple(learned_nets)
-        self.nets = NetChoice(num_envs, len(self.learned_nets), device)
         if side not in SIDES:
             raise ValueError(f"side {side!r} is not one of {SIDES}")
-        self.device = device
-        self.num_envs = num_envs
-        self.simulator_name = simulator
-        self.gel_depth = gel_depth
+        super().__init__(
+            patients,
+            num_envs,
+            spacing,
+            simulator,
+            learned_nets,
+            target_vertebra,
+            device,
+            ProbeGeometry.volume_3d(),
+            gel_depth,
+        )
         self.side = side
         self.skin_distance = float(skin_distance)
         self.start_height = float(start_height)
         self.probe_settle_steps = int(probe_settle_steps)
-        self.patients = resolve_patients(patients, spacing)
-        self.patient_index = torch.arange(num_envs, device=device) % len(self.patients)
-        self.skin = SkinSurface.stack([p.skin for p in self.patients]).to(device)
 
         # ---- per patient: goal frame, corridor radius, vertebra centre, skin anchor
-        goal_pos, goal_rot, radius, centres = [], [], [], []
+        goal_pos, goal_rot, radius = [], [], []
         for p in self.patients:
             traj = p.landmarks.trajectory(target_vertebra, side)
             vert = p.landmarks.vertebra(target_vertebra)
@@ -156,17 +146,15 @@ class SurgeryScene:
             goal_pos.append(traj.target)
             goal_rot.append(np.stack([x, np.cross(z, x), z], 1))
             radius.append(traj.radius)
-            centres.append(vert.centre)
         f32 = dict(dtype=torch.float32, device=device)
         self._goal_pos_p = torch.tensor(np.array(goal_pos), **f32)  # (P, 3)
         self._goal_rot_p = torch.tensor(np.array(goal_rot), **f32)  # (P, 3, 3)
         self._radius_p = torch.tensor(radius, **f32)  # (P,)
-        centres_p = torch.tensor(np.array(centres), dtype=torch.float64, device=device)
+        centres_p = self.target_centres_p
         pid = self.patient_index
         self.goal_pos = self._goal_pos_p[pid]  # (N, 3) origin of {G} in {P}
         self.goal_rot = self._goal_rot_p[pid]  # (N, 3, 3) axes of {G} in {P}
         self.radius = self._radius_p[pid]  # (N,) planned corridor radius r, m
-        self.target_centres = centres_p[pid].float()  # (N, 3)
 
         # ---- nominal probe surface command per patient: (x, z, yaw, tilt)
         probe_side = 1.0 if side == "left" else -1.0  # +1: patient's right (+x)
@@ -203,7 +191,7 @@ class SurgeryScene:
         self.probe_cmd = self._probe_cmd_p[pid].float()  # (N, 4) commanded surface pose
         self.probe_reach_error = torch.zeros(n, **f32)  # m, settle residual
         if render:
-            _ = self.slicer, self.simulator
+            self.build_imaging()
 
     # ------------------------------------------------------------------ arms
     def _arm(self, model: str, tool: str, placement, anchors: torch.Tensor, solver=False):
@@ -260,10 +248,13 @@ class SurgeryScene:
         cmd = self._probe_cmd_p[pid].clone()
         cmd[:, :2] += offset.to(cmd)
         pos, rot = self.skin.surface_pose(cmd[:, 0], cmd[:, 1], cmd[:, 2], cmd[:, 3], pid)
-        with _bases(self.probe_arm, self.probe_arm.base_pose[env_ids]) as arm:
-            res = arm.track(
-                self._q_probe_nominal_p[pid], pos.float(), rot.float(), self.probe_settle_steps
-            )
+        res = self.probe_arm.track(
+            self._q_probe_nominal_p[pid],
+            pos.float(),
+            rot.float(),
+            self.probe_settle_steps,
+            env_ids=env_ids,
+        )
         self.q_probe[env_ids] = res.q
         self.probe_pos[env_ids], self.probe_rot[env_ids] = res.pos, res.rot
         self.probe_cmd[env_ids] = cmd.float()
@@ -285,8 +276,7 @@ class SurgeryScene:
 
     def drill_fk(self, env_ids: torch.Tensor, q: torch.Tensor):
         """Tip poses of joints ``q`` of the drill arms of ``env_ids``."""
-        with _bases(self.drill_arm, self.drill_arm.base_pose[env_ids]) as arm:
-            return arm.fk(q)
+        return self.drill_arm.fk(q, env_ids=env_ids)
 
     def set_drill(self, env_ids: torch.Tensor, q: torch.Tensor) -> None:
         self.q_drill[env_ids] = q
@@ -317,45 +307,3 @@ class SurgeryScene:
             self.tip_pos[env_ids],
             self.tip_rot[env_ids],
         )
-
-    # ---------------------------------------------------------------- imaging
-    @cached_property
-    def probe_geometry(self):
-        from sonogym.ultrasound import ProbeGeometry
-
-        return ProbeGeometry.volume_3d()
-
-    @cached_property
-    def slicer(self):
-        from sonogym.ultrasound import Slicer
-
-        return Slicer(self.patients, self.probe_geometry, device=self.device)
-
-    @cached_property
-    def simulator(self):
-        from sonogym.ultrasound import make_model
-
-        model = None
-        if self.simulator_name != "learned":
-            model = make_model(self.simulator_name)
-            if self.gel_depth is not None:
-                model = replace(model, gel_depth=float(self.gel_depth))
-        return build_simulator(
-            self.simulator_name, self.patients, self.device, self.learned_nets, model
-        )
-
-    def draw_nets(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
-        """Draw the learned net of each env in ``env_ids`` from uniforms ``u`` (see NetChoice)."""
-        self.nets.draw(env_ids, u)
-
-    @property
-    def image_shape(self) -> tuple[int, int, int]:
-        """(E, H, W) of the volume."""
-        return self.probe_geometry.shape
-
-    def observe(self, mode: str, env_ids: torch.Tensor | None = None) -> torch.Tensor:
-        """Volumes at the reached probe poses: "us" (K, E, H, W) in [0, 1], "ct" windowed to
-        [0, 1], "labels" uint8."""
-        sl = slice(None) if env_ids is None else env_ids
-        s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
-        return image_observation(s, mode, self, env_ids)

@@ -42,7 +42,10 @@ def curve_label(c: Curve) -> str:
 
 
 def expert_label(task: str) -> str:
-    return "heuristic" if task == "reconstruction" else "expert"
+    """What the task's privileged controller is called ("expert" or "heuristic")."""
+    from sonogym.envs.registry import get_task
+
+    return get_task(task).expert_label
 
 
 # ----------------------------------------------------------------------------- runs
@@ -198,9 +201,9 @@ def expert_reference(
         r = json.loads(ev.read_text()).get("results", {}).get("expert", {})
         if key in r:
             return float(r[key][0]), f"{ev.relative_to(run.parent)}"
-    from sonogym.evaluation.rl_eval import rollout
+    from sonogym.evaluation.rl_eval import run_controllers
 
-    res = rollout(run, episodes, seed=seed, controllers=("expert",))["expert"]["metrics"]
+    res = run_controllers(run, episodes, seed=seed, controllers=("expert",))["expert"]["metrics"]
     if key not in res:
         return None
     return float(

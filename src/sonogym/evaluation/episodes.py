@@ -10,7 +10,7 @@ A log is ``<run>/episodes/<protocol>.npz`` (NumPy, no pickles) holding:
 * ``<controller>/<metric>``: (trials,) float32, the task's episode metrics (``return``
   included) in the env's units (``safe_ratio`` a fraction);
 * ``<controller>/track``: (trials, T + 1, D) float32, the tracked point from the start state to
-  the last state (see ``TRACKS``).
+  the last state (the task's ``TaskSpec.track``).
 
 Controllers are ``policy``, ``expert`` (the task's expert or heuristic) and ``random``. An
 imitation-learning run can join the report by writing the same file under its own run folder
@@ -20,7 +20,7 @@ imitation-learning run can join the report by writing the same file under its ow
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,57 +28,43 @@ from typing import Any
 import numpy as np
 import torch
 
+from sonogym.envs.registry import get_task
+from sonogym.envs.rollout import rollout
+
 FORMAT = 1
 
 
-@dataclass(frozen=True)
-class Track:
-    """What trajectory a task logs: ``fn(env, info)`` -> (N, D) float, in ``units``."""
-
-    columns: tuple[str, ...]
-    units: tuple[str, ...]
-    fn: Callable[[Any, dict], torch.Tensor]
-
-
-def _probe_pose(env, info) -> torch.Tensor:
-    """The reached probe pose as a surface command (x, z, yaw, tilt) relative to the env's goal
-    command: x, z in mm (patient frame, frontal plane), yaw and tilt in deg.
-
-    Rebuilt from ``info["state"]`` (the probe's pose in the task frame, measured before an
-    in-step reset), so the last point of an episode is the pose its metrics were taken at."""
-    from sonogym.geometry import matrix_from_axis_angle, wrap_angle
-
-    state = info["state"].float()
-    if hasattr(env, "_v_pos"):  # reconstruction: {U} in the vertebra frame {V}
-        frame_pos, frame_rot = env._v_pos, env._v_rot
-    else:  # navigation: {U} in the goal frame {G}
-        frame_pos, frame_rot = env.goal_pos, env.goal_rot
-    pos = frame_pos + (frame_rot @ state[:, :3].unsqueeze(-1)).squeeze(-1)
-    rot = frame_rot @ matrix_from_axis_angle(state[:, 3:6])
-    x, z, yaw, tilt = env.scene.skin.command_from_pose(pos, rot, env.scene.patient_index)
-    g = env.goal_cmd
-    out = [(x - g[:, 0]) * 1e3, (z - g[:, 1]) * 1e3, torch.rad2deg(wrap_angle(yaw - g[:, 2]))]
-    if g.shape[1] > 3:
-        out.append(torch.rad2deg(tilt - g[:, 3]))
-    return torch.stack(out, -1)
-
-
-def _drill_tip(env, info) -> torch.Tensor:
-    """Drill tip in the goal frame {G} (mm): z along the planned trajectory, 0 at the target."""
-    return info["state"][:, :3] * 1e3
-
-
-#: Tracked trajectory per task.
-TRACKS: dict[str, Track] = {
-    "navigation": Track(("x", "z", "yaw"), ("mm", "mm", "deg"), _probe_pose),
-    "reconstruction": Track(("x", "z", "yaw", "tilt"), ("mm", "mm", "deg", "deg"), _probe_pose),
-    "surgery": Track(("x", "y", "z"), ("mm", "mm", "mm"), _drill_tip),
-}
-
-
-def current_info(env) -> dict:
-    """The env's info for its current state (the start state right after a reset)."""
-    return env._get_info()
+def run_episodes(env, policy, trials: int, seed: int, task: str) -> dict[str, Any]:
+    """``trials`` episodes of ``policy`` in ``env`` (batches of ``env.num_envs`` fixed-length
+    episodes from ``env.reset(seed=seed)``): {"metrics": {metric: (trials,) array},
+    "track": (trials, T + 1, D) array} with the task's tracked point (``TaskSpec.track``) from
+    each start state to its last state."""
+    track = get_task(task).track
+    n, T = env.num_envs, env.episode_length
+    batches = math.ceil(trials / n)
+    collected: dict[str, list[torch.Tensor]] = {}
+    paths = torch.zeros(batches * n, T + 1, len(track.columns))
+    for step in rollout(env, policy, batches * T, seed=seed):
+        b, t = divmod(step.t, T)
+        rows = slice(b * n, (b + 1) * n)
+        if t == 0:
+            paths[rows, 0] = track.fn(env, step.info).float().cpu()
+        paths[rows, t + 1] = track.fn(env, step.next_info).float().cpu()
+        final = step.final_info
+        if final is not None:
+            if t != T - 1 or len(final["env_ids"]) != n:
+                raise RuntimeError(
+                    f"{task}: episodes ended out of step (step {t + 1} of {T}, "
+                    f"{len(final['env_ids'])} of {n} envs); the log assumes fixed-length episodes"
+                )
+            order = torch.argsort(final["env_ids"].cpu())
+            for k, v in final.items():
+                if k != "env_ids":
+                    collected.setdefault(k, []).append(v.detach().float().cpu()[order])
+    return {
+        "metrics": {k: torch.cat(v)[:trials].numpy() for k, v in collected.items()},
+        "track": paths[:trials].numpy(),
+    }
 
 
 def log_path(run: str | Path, protocol: str) -> Path:
@@ -144,9 +130,6 @@ def run_logs(run: str | Path) -> list[EpisodeLog]:
 
 # ----------------------------------------------------------------------------- figure
 
-#: Which two track columns a task's trajectory figure draws (horizontal, vertical).
-PLANE = {"navigation": ("x", "z"), "reconstruction": ("x", "z"), "surgery": ("x", "z")}
-
 
 def plot_trajectories(
     log: EpisodeLog,
@@ -165,7 +148,7 @@ def plot_trajectories(
     task = log.meta["task"]
     cols = log.meta["track_columns"]
     units = log.meta["track_units"]
-    h, v = PLANE[task]
+    h, v = get_task(task).track.plane
     i, j = cols.index(h), cols.index(v)
     names = [c for c in (controllers or tuple(log.tracks)) if c in log.tracks]
     fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.8), squeeze=False)
@@ -202,5 +185,5 @@ def _controller_label(c: str, meta: dict) -> str:
     if c == "policy":
         return f"policy ({meta['algo']})"
     if c == "expert":
-        return "heuristic" if meta["task"] == "reconstruction" else "expert"
+        return get_task(meta["task"]).expert_label
     return c

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sonogym.envs.registry import get_task
+from sonogym.envs.spec import Metric
 from sonogym.evaluation.curves import (
     algo_label,
     discover_runs,
@@ -43,36 +45,13 @@ from sonogym.evaluation.curves import (
 from sonogym.evaluation.episodes import EpisodeLog, run_logs
 from sonogym.evaluation.protocols import simulator_group
 
-
-@dataclass(frozen=True)
-class Metric:
-    """A reported metric: env metric name, the paper's label, unit, factor env unit -> unit."""
-
-    key: str
-    label: str
-    unit: str
-    scale: float = 1.0
+RETURN = Metric("return", "return", "", better="higher")
 
 
-#: Reported metrics per task, in the paper's order, names and units.
-METRICS: dict[str, tuple[Metric, ...]] = {
-    "navigation": (
-        Metric("position_error_mm", "position error", "mm"),
-        Metric("angle_error_deg", "rotation error", "deg"),
-    ),
-    "reconstruction": (
-        Metric("coverage", "coverage ratio", "%", 100.0),
-        Metric("total_rotation_deg", "total rotation angle", "deg"),
-        Metric("trajectory_length_mm", "trajectory length", "mm"),
-    ),
-    "surgery": (
-        Metric("side_error_mm", "side err", "mm"),
-        Metric("insertion_error_mm", "insert err", "mm"),
-        Metric("rotation_error_deg", "rot err", "deg"),
-        Metric("safe_ratio", "safe ratio", "%", 100.0),
-    ),
-}
-RETURN = Metric("return", "return", "")
+def task_metrics(task: str) -> tuple[Metric, ...]:
+    """A task's reported metrics in the paper's order, names and units (task registry)."""
+    return get_task(task).metrics
+
 
 #: The paper's Table 1 (surgery, mean over 100 trials): {(sim, algo): {(metric, column): v}}.
 PAPER_TABLE1: dict[tuple[str, str], dict[tuple[str, str], float]] = {
@@ -152,7 +131,7 @@ def collect_cells(task: str, logs: list[tuple[Path, EpisodeLog]]) -> list[Cell]:
                 if key in seen_fixed:
                     continue
                 seen_fixed.add(key)
-            for m in (*METRICS[task], RETURN):
+            for m in (*task_metrics(task), RETURN):
                 if m.key not in metrics:
                     continue
                 p = pools.setdefault(
@@ -161,7 +140,7 @@ def collect_cells(task: str, logs: list[tuple[Path, EpisodeLog]]) -> list[Cell]:
                 p["v"].append(np.asarray(metrics[m.key], np.float64) * m.scale)
                 p["runs"].append(run.name)
                 p["seeds"].append(int(meta["train_seed"]))
-    by_key = {m.key: m for m in (*METRICS[task], RETURN)}
+    by_key = {m.key: m for m in (*task_metrics(task), RETURN)}
     cells = [
         Cell(
             sim,
@@ -209,7 +188,7 @@ def metrics_csv(cells: list[Cell]) -> str:
 
 def table1_columns() -> list[tuple[Metric, str]]:
     """Table 1's value columns: (metric, IDT | ODT), in the paper's order."""
-    return [(m, col) for m in METRICS["surgery"] for col in ("IDT", "ODT")]
+    return [(m, col) for m in task_metrics("surgery") for col in ("IDT", "ODT")]
 
 
 def table1(cells: list[Cell]) -> tuple[str, str, list[Cell]]:
@@ -261,7 +240,7 @@ def new_patient_table(cells: list[Cell]) -> tuple[str, list[Cell]] | None:
     if not use:
         return None
     idx = {(c.method, c.metric.key): c for c in use}
-    mets = METRICS["surgery"]
+    mets = task_metrics("surgery")
     md = ["| Algos | " + " | ".join(f"{m.label} [{m.unit}]" for m in mets) + " |",
           "|" + "---|" * (len(mets) + 1)]  # fmt: skip
     for method in sorted({c.method for c in use}, key=_order):
@@ -309,7 +288,7 @@ def bar_chart(task: str, cells: list[Cell], path: Path) -> tuple[Path, list[Cell
     )
     methods = sorted({c.method for c in use}, key=_order)
     idx = {(c.sim, c.protocol, c.method, c.metric.key): c for c in use}
-    mets = [m for m in METRICS[task] if any(c.metric.key == m.key for c in use)]
+    mets = [m for m in task_metrics(task) if any(c.metric.key == m.key for c in use)]
     fig, axes = plt.subplots(1, len(mets), figsize=(3.4 * len(mets) + 1, 3.6), squeeze=False)
     width = 0.8 / len(methods)
     for ax, m in zip(axes[0], mets, strict=True):
@@ -391,8 +370,7 @@ def build_report(
     command: str | None = None,
 ) -> Path:
     """Write the task's tables and figures (module doc) to ``out``; returns ``out/report.md``."""
-    if task not in METRICS:
-        raise ValueError(f"unknown task {task!r}; choose from {sorted(METRICS)}")
+    get_task(task)  # an unknown task names the known ones
     out = Path(out)
     all_runs = discover_runs(list(runs))
     task_runs = [r for r in all_runs if run_config(r)["task"] == task]
@@ -427,7 +405,7 @@ def build_report(
         ]
         extra = new_patient_table(cells)
         if extra is not None:
-            mets = METRICS["surgery"]
+            mets = task_metrics("surgery")
             paper = ["| Algos | " + " | ".join(f"{m.label} [{m.unit}]" for m in mets) + " |",
                      "|" + "---|" * (len(mets) + 1)]  # fmt: skip
             paper += [f"| {a} | " + " | ".join(v) + " |" for a, v in PAPER_NEW_PATIENT.items()]

@@ -19,7 +19,6 @@ the out-of-domain protocols), every episode's metrics and trajectory to
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -59,9 +58,9 @@ def evaluate_run(
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
     ``trajectories-<protocol>.png``.
     """
-    from sonogym.agents.checkpoint import load_policy
-    from sonogym.agents.train import latest_checkpoint
-    from sonogym.evaluation.episodes import TRACKS, load_log, log_path, plot_trajectories, save_log
+    from sonogym.agents.checkpoint import latest_checkpoint, load_policy
+    from sonogym.envs.registry import get_task
+    from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
     from sonogym.evaluation.protocols import protocol as get_protocol
 
@@ -85,7 +84,7 @@ def evaluate_run(
     overrides.update(env_overrides or {})
     name = protocol or ("custom" if env_overrides else "idt")
 
-    episodes = rollout(run, trials, envs, seed, device, overrides, controllers)
+    episodes = run_controllers(run, trials, envs, seed, device, overrides, controllers)
     results = {
         c: {
             k: (float(t.mean()), float(t.std()) if trials > 1 else 0.0)
@@ -93,7 +92,7 @@ def evaluate_run(
         }
         for c, ep in episodes.items()
     }
-    track = TRACKS[cfg["task"]]
+    track = get_task(cfg["task"]).track
     meta = {
         "task": cfg["task"],
         "algo": cfg["algo"],
@@ -131,7 +130,26 @@ def evaluate_run(
     return results
 
 
-def rollout(
+def controller_policy(name: str, env, task: str, run: str | Path, seed: int, device: str = "cpu"):
+    """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy, the task's
+    expert (or heuristic), or uniform random actions from ``seed``."""
+    if name == "policy":
+        from sonogym.agents.checkpoint import rl_policy
+
+        return rl_policy(run, env, device=device)
+    if name == "expert":
+        from sonogym.envs.policy import ExpertPolicy
+        from sonogym.envs.registry import get_task
+
+        return ExpertPolicy(env, get_task(task).expert)
+    if name == "random":
+        from sonogym.envs.policy import RandomPolicy
+
+        return RandomPolicy(env, seed)
+    raise ValueError(f"unknown controller {name!r}; choose from {list(CONTROLLERS)}")
+
+
+def run_controllers(
     run: str | Path,
     trials: int,
     envs: int | None = None,
@@ -142,74 +160,22 @@ def rollout(
 ) -> dict[str, dict[str, Any]]:
     """Run ``trials`` episodes per controller in the run's env (with ``env_overrides``), all
     from the same seeded starts: {controller: {"metrics": {metric: (trials,) array},
-    "track": (trials, T + 1, D) array}} (see ``episodes.TRACKS``). Nothing is written."""
-    from sonogym.agents.adapter import SkrlEnvAdapter
+    "track": (trials, T + 1, D) array}} (see ``episodes.run_episodes``). Nothing is written."""
     from sonogym.agents.checkpoint import load_policy
     from sonogym.agents.configs import task_config
     from sonogym.agents.train import make_env
-    from sonogym.evaluation.demo import DEMO_TASKS
-    from sonogym.evaluation.episodes import TRACKS, current_info
+    from sonogym.evaluation.episodes import run_episodes
 
-    run = Path(run)
-    model, cfg = load_policy(run, device=device)
-    critic = None
-    if cfg["algo"] == "ppo-sf" and "policy" in controllers:  # acts through its safety filter
-        from sonogym.agents.checkpoint import load_cost_critic
-        from sonogym.agents.safety_filter import filter_actions
-
-        critic, threshold = load_cost_critic(run, device=device)
+    _, cfg = load_policy(run, device=device)  # checks the run folder early
     task = cfg["task"]
-    tc = cfg["task_config"]
-    env_kwargs = {**_tuples(tc["env_kwargs"]), **(env_overrides or {})}
-    n = min(trials, envs or 16)
-    env = make_env(task_config(task, env_kwargs=env_kwargs), n, device)
-    adapter = SkrlEnvAdapter(env, tc["obs_downsample"], tc["obs_scales"])
-    demo = DEMO_TASKS[task]
-    track = TRACKS[task]
-    low = torch.as_tensor(env.single_action_space.low, device=env.device)
-    high = torch.as_tensor(env.single_action_space.high, device=env.device)
-    T = env.episode_length
-    batches = math.ceil(trials / n)
-
-    out: dict[str, dict[str, Any]] = {}
-    for name in controllers:
-        gen = torch.Generator(device="cpu").manual_seed(seed)
-        obs, info = env.reset(seed=seed)
-        collected: dict[str, list[torch.Tensor]] = {}
-        paths = torch.zeros(batches * n, T + 1, len(track.columns))
-        for b in range(batches):
-            rows = slice(b * n, (b + 1) * n)
-            paths[rows, 0] = track.fn(env, info if b == 0 else current_info(env)).float().cpu()
-            for t in range(T):
-                with torch.no_grad():
-                    if name == "policy":
-                        x = adapter.flatten(obs)
-                        action = model.act({"observations": x}, role="policy")[1]["mean_actions"]
-                        if critic is not None:
-                            action, _ = filter_actions(critic, x, action, threshold)
-                    elif name == "expert":
-                        action = demo.expert(env, info)
-                    else:
-                        u = torch.rand(n, *low.shape, generator=gen).to(env.device)
-                        action = low + (high - low) * u
-                obs, _, _, _, info = env.step(action)
-                paths[rows, t + 1] = track.fn(env, info).float().cpu()
-                final = info.get("final_info")
-                if final is not None:
-                    if t != T - 1 or len(final["env_ids"]) != n:
-                        raise RuntimeError(
-                            f"{task}: episodes ended out of step (step {t + 1} of {T}, "
-                            f"{len(final['env_ids'])} of {n} envs); the log assumes fixed-length"
-                            " episodes"
-                        )
-                    order = torch.argsort(final["env_ids"].cpu())
-                    for k, v in final.items():
-                        if k != "env_ids":
-                            collected.setdefault(k, []).append(v.detach().float().cpu()[order])
-        out[name] = {
-            "metrics": {k: torch.cat(v)[:trials].numpy() for k, v in collected.items()},
-            "track": paths[:trials].numpy(),
-        }
+    env_kwargs = {**_tuples(cfg["task_config"]["env_kwargs"]), **(env_overrides or {})}
+    env = make_env(task_config(task, env_kwargs=env_kwargs), min(trials, envs or 16), device)
+    out = {
+        name: run_episodes(
+            env, controller_policy(name, env, task, run, seed, device), trials, seed, task
+        )
+        for name in controllers
+    }
     env.close()
     return out
 

@@ -8,7 +8,14 @@ Everything is in the patient frame {P}, metres and radians, batch-first.
 """
 
 from sonogym.robots.arm import REFERENCE_VELOCITY_LIMITS, Arm, ArmConfig, IKResult
-from sonogym.robots.description import ARM_MODELS, URDF_DIR, ArmModel, arm_model, assemble_urdf
+from sonogym.robots.description import (
+    ARM_MODELS,
+    URDF_DIR,
+    ArmModel,
+    ArmName,
+    arm_model,
+    assemble_urdf,
+)
 from sonogym.robots.placement import (
     NAVIGATION_PROBE_BASE,
     OVERHEAD_PROBE_BASE,
@@ -22,6 +29,7 @@ from sonogym.robots.tools import DRILL_TOOL, PROBE_TOOL, ToolConfig
 
 __all__ = [
     "ARM_MODELS",
+    "ArmName",
     "DRILL_TOOL",
     "NAVIGATION_PROBE_BASE",
     "OVERHEAD_PROBE_BASE",

@@ -259,14 +259,25 @@ class Arm:
         u = torch.rand(n, self.num_joints, generator=generator, dtype=torch.float64)
         return (lo + u.to(self.device, self.dtype) * (hi - lo)).contiguous()
 
-    def _check_q(self, q: torch.Tensor, within_limits: bool = False) -> torch.Tensor:
-        """Validate (N, 7) joints; with ``within_limits``, reject joints more than 1e-4 rad
-        outside the limits and clamp smaller excursions (rounding) into them."""
+    def _bases(self, env_ids: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Base poses and their inverses of the arms ``env_ids`` (None: all)."""
+        if env_ids is None or self._base.dim() == 2:
+            return self._base, self._base_inv
+        return self._base[env_ids], self._base_inv[env_ids]
+
+    def _check_q(
+        self, q: torch.Tensor, within_limits: bool = False, env_ids: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Validate (N, 7) joints (of the arms ``env_ids`` when given); with ``within_limits``,
+        reject joints more than 1e-4 rad outside the limits and clamp smaller excursions
+        (rounding) into them."""
         if q.dim() != 2 or q.shape[1] != self.num_joints:
             raise ValueError(f"joints must be (N, {self.num_joints}), got {tuple(q.shape)}")
-        if self._base.dim() == 3 and self._base.shape[0] not in (1, q.shape[0]):
+        base, _ = self._bases(env_ids)
+        if base.dim() == 3 and base.shape[0] not in (1, q.shape[0]):
+            what = "arms selected by env_ids" if env_ids is not None else "base poses"
             raise ValueError(
-                f"{q.shape[0]} joint vectors for {self._base.shape[0]} base poses; pass one "
+                f"{q.shape[0]} joint vectors for {base.shape[0]} {what}; pass one "
                 "base pose per arm or a single (4, 4) pose"
             )
         _check_finite("joint positions", q)
@@ -289,17 +300,18 @@ class Arm:
         tip = frames[self._tip_index]
         return tip[:, :3, 3], tip[:, :3, :3], jac
 
-    def _to_base(self, pos: torch.Tensor, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        r, t = self._base_inv[..., :3, :3], self._base_inv[..., :3, 3]
+    @staticmethod
+    def _apply(pose: torch.Tensor, pos: torch.Tensor, rot: torch.Tensor):
+        """Rigid transform ``pose`` ((4, 4) or (N, 4, 4)) applied to positions and rotations."""
+        r, t = pose[..., :3, :3], pose[..., :3, 3]
         return (r @ pos.unsqueeze(-1)).squeeze(-1) + t, r @ rot
 
-    def _from_base(self, pos: torch.Tensor, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        r, t = self._base[..., :3, :3], self._base[..., :3, 3]
-        return (r @ pos.unsqueeze(-1)).squeeze(-1) + t, r @ rot
-
-    def fk(self, q: torch.Tensor, link: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pose in {P} of the tool tip (or of ``link``): pos (N, 3) m, rot (N, 3, 3)."""
-        q = self._check_q(q)
+    def fk(
+        self, q: torch.Tensor, link: str | None = None, env_ids: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pose in {P} of the tool tip (or of ``link``): pos (N, 3) m, rot (N, 3, 3).
+        ``env_ids``: the arms (rows of the base poses) ``q`` belongs to; None: all."""
+        q = self._check_q(q, env_ids=env_ids)
         if link is None:
             index = self._tip_index
         elif link in self._frame_index:
@@ -307,7 +319,7 @@ class Arm:
         else:
             raise ValueError(f"unknown link {link!r}; known: {self.link_names}")
         pose = self.chain.forward_kinematics_tensor(q)[index]
-        return self._from_base(pose[:, :3, 3], pose[:, :3, :3])
+        return self._apply(self._bases(env_ids)[0], pose[:, :3, 3], pose[:, :3, :3])
 
     def jacobian(self, q: torch.Tensor) -> torch.Tensor:
         """(N, 6, 7) geometric Jacobian of the tip in {P}: rows (linear velocity of the tip
@@ -336,7 +348,11 @@ class Arm:
 
     # ---------------------------------------------------------------------- IK
     def ik_step(
-        self, q: torch.Tensor, target_pos: torch.Tensor, target_rot: torch.Tensor
+        self,
+        q: torch.Tensor,
+        target_pos: torch.Tensor,
+        target_rot: torch.Tensor,
+        env_ids: torch.Tensor | None = None,
     ) -> IKResult:
         """One control step toward tip targets in {P}.
 
@@ -344,8 +360,10 @@ class Arm:
             q: (N, 7) current joints, rad (within limits).
             target_pos: (N, 3) tip position targets in {P}, m.
             target_rot: (N, 3, 3) tip orientation targets in {P}.
+            env_ids: the arms (rows of the base poses) the N rows belong to; None: all arms.
         """
-        q = self._check_q(q, within_limits=True)
+        q = self._check_q(q, within_limits=True, env_ids=env_ids)
+        base, base_inv = self._bases(env_ids)
         n = q.shape[0]
         if target_pos.shape != (n, 3) or target_rot.shape != (n, 3, 3):
             raise ValueError(
@@ -354,8 +372,8 @@ class Arm:
             )
         _check_finite("target_pos", target_pos)
         _check_finite("target_rot", target_rot)
-        tp, tr = self._to_base(
-            target_pos.to(self.device, self.dtype), target_rot.to(self.device, self.dtype)
+        tp, tr = self._apply(
+            base_inv, target_pos.to(self.device, self.dtype), target_rot.to(self.device, self.dtype)
         )
         step = self.max_joint_step
         lo = torch.maximum(self.q_min, q - step)
@@ -382,10 +400,11 @@ class Arm:
         frames = self.chain.forward_kinematics_tensor(q)[self._tip_index]
         pos, rot = frames[:, :3, 3], frames[:, :3, :3]
         err = self.pose_error(pos, rot, tp, tr)
-        return self._result(q, pos, rot, err, err0, tp, limited)
+        return self._result(base, q, pos, rot, err, err0, tp, limited)
 
     def _result(
         self,
+        base: torch.Tensor,
         q: torch.Tensor,
         pos: torch.Tensor,
         rot: torch.Tensor,
@@ -402,7 +421,7 @@ class Arm:
         w0 = err0[:, :3].norm(dim=-1) + cfg.rotation_weight * err0[:, 3:].norm(dim=-1)
         stalled = (w1 > (1.0 - cfg.stall_ratio) * w0) & ~limited
         beyond = (target_pos_base - self._shoulder).norm(dim=-1) > self.reach
-        pos_p, rot_p = self._from_base(pos, rot)
+        pos_p, rot_p = self._apply(base, pos, rot)
         return IKResult(
             q=q,
             pos=pos_p,
@@ -414,13 +433,18 @@ class Arm:
         )
 
     def track(
-        self, q: torch.Tensor, target_pos: torch.Tensor, target_rot: torch.Tensor, steps: int
+        self,
+        q: torch.Tensor,
+        target_pos: torch.Tensor,
+        target_rot: torch.Tensor,
+        steps: int,
+        env_ids: torch.Tensor | None = None,
     ) -> IKResult:
         """``steps`` control steps toward fixed targets (e.g. to settle the arm at a reset);
-        returns the last step's result."""
+        returns the last step's result. ``env_ids`` as in ``ik_step``."""
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
-        result = self.ik_step(q, target_pos, target_rot)
+        result = self.ik_step(q, target_pos, target_rot, env_ids)
         for _ in range(steps - 1):
-            result = self.ik_step(result.q, target_pos, target_rot)
+            result = self.ik_step(result.q, target_pos, target_rot, env_ids)
         return result

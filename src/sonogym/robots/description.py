@@ -9,6 +9,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from sonogym.robots.tools import ToolConfig
 
@@ -32,6 +33,9 @@ class ArmModel:
     flange_link: str
     default_joints: tuple[float, ...]
 
+
+#: Names of the known arm models (the keys of ``ARM_MODELS``).
+ArmName = Literal["kuka_med14", "franka_fr3"]
 
 #: Known arm models by name.
 ARM_MODELS: dict[str, ArmModel] = {

@@ -27,7 +27,6 @@ class SurfaceStep:
     Attributes:
         q: (N, 7) joints after the step.
         probe_pos, probe_rot: (N, 3), (N, 3, 3) reached probe pose (columns x_U, y_U, z_U).
-        target_pos, target_rot: the commanded surface pose.
         pos_error, rot_error: (N,) distance and angle between reached and commanded poses.
         reached: (N,) bool, within the arm's IK tolerances.
         reachable: (N,) bool, False where the arm reports the target unreachable.
@@ -36,12 +35,14 @@ class SurfaceStep:
     q: torch.Tensor
     probe_pos: torch.Tensor
     probe_rot: torch.Tensor
-    target_pos: torch.Tensor
-    target_rot: torch.Tensor
     pos_error: torch.Tensor
     rot_error: torch.Tensor
     reached: torch.Tensor
     reachable: torch.Tensor
+
+    def rows(self, ids) -> SurfaceStep:
+        """The step of the arms ``ids`` only."""
+        return SurfaceStep(**{k: v[ids] for k, v in vars(self).items()})
 
 
 class SurfaceController:
@@ -90,13 +91,11 @@ class SurfaceController:
         return pos.to(dt), rot.to(dt)
 
     @staticmethod
-    def _wrap(result: IKResult, target_pos: torch.Tensor, target_rot: torch.Tensor) -> SurfaceStep:
+    def _wrap(result: IKResult) -> SurfaceStep:
         return SurfaceStep(
             q=result.q,
             probe_pos=result.pos,
             probe_rot=result.rot,
-            target_pos=target_pos,
-            target_rot=target_rot,
             pos_error=result.pos_error,
             rot_error=result.rot_error,
             reached=result.reached,
@@ -111,10 +110,12 @@ class SurfaceController:
         yaw: torch.Tensor,
         tilt: torch.Tensor | None = None,
         patient: torch.Tensor | None = None,
+        env_ids: torch.Tensor | None = None,
     ) -> SurfaceStep:
-        """One control step of joints q (N, 7) toward the surface command."""
+        """One control step of joints q (N, 7) toward the surface command. ``env_ids``: the
+        arms the N rows belong to (None: all; see ``Arm.ik_step``)."""
         target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
-        return self._wrap(self.arm.ik_step(q, target_pos, target_rot), target_pos, target_rot)
+        return self._wrap(self.arm.ik_step(q, target_pos, target_rot, env_ids))
 
     def settle(
         self,
@@ -125,17 +126,13 @@ class SurfaceController:
         tilt: torch.Tensor | None = None,
         steps: int | None = None,
         patient: torch.Tensor | None = None,
+        env_ids: torch.Tensor | None = None,
     ) -> SurfaceStep:
-        """``steps`` (default ``settle_steps``) control steps toward a fixed surface command."""
+        """``steps`` (default ``settle_steps``) control steps toward a fixed surface command
+        (of the arms ``env_ids``; None: all)."""
         target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
-        result = self.arm.track(q, target_pos, target_rot, steps or self.settle_steps)
-        return self._wrap(result, target_pos, target_rot)
-
-    def measured_command(
-        self, probe_pos: torch.Tensor, probe_rot: torch.Tensor, patient: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Surface command (x, z, yaw in [0, 2 pi), tilt) of a reached probe pose."""
-        return self.skin.command_from_pose(probe_pos, probe_rot, patient)
+        result = self.arm.track(q, target_pos, target_rot, steps or self.settle_steps, env_ids)
+        return self._wrap(result)
 
     def skin_distance(
         self, probe_pos: torch.Tensor, patient: torch.Tensor | None = None

@@ -1,0 +1,61 @@
+"""The task registry: every SonoGym task's ``TaskSpec``, by name and by Gymnasium id.
+
+Adding a task: write its module (env, config, expert, ``SPEC``) and add it to ``_MODULES``.
+Nothing else in the package keeps a per-task table.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+from sonogym.envs import navigation, reconstruction, surgery
+from sonogym.envs.spec import TaskSpec
+
+_MODULES = (navigation, reconstruction, surgery)
+
+#: Task name -> spec, in the paper's order.
+TASKS: dict[str, TaskSpec] = {m.SPEC.name: m.SPEC for m in _MODULES}
+
+
+def task_names() -> tuple[str, ...]:
+    return tuple(TASKS)
+
+
+def get_task(name: str) -> TaskSpec:
+    """The spec of task ``name`` (or of its Gymnasium id), naming the known tasks if unknown."""
+    if name in TASKS:
+        return TASKS[name]
+    for spec in TASKS.values():
+        if spec.env_id == name:
+            return spec
+    raise ValueError(f"unknown task {name!r}; known tasks: {sorted(TASKS)}")
+
+
+def check_algo(task: str, algo: str) -> TaskSpec:
+    """The task's spec; raise ``ValueError`` for an unknown task or an algorithm the task does
+    not support, naming the supported ones."""
+    spec = get_task(task)
+    algos = spec.training.algos
+    if algo not in algos:
+        raise ValueError(f"algorithm {algo!r} is not supported on {task}; supported: {list(algos)}")
+    return spec
+
+
+def make_vec(task: str, num_envs: int, **options):
+    """The task's batched env through ``gymnasium.make_vec`` (options: its config fields)."""
+    return gym.make_vec(get_task(task).env_id, num_envs=num_envs, **options)
+
+
+def register_envs() -> None:
+    """Register every task with Gymnasium (idempotent): ``gymnasium.make_vec`` gives the batched
+    env, ``gymnasium.make`` one env with NumPy I/O."""
+    for spec in TASKS.values():
+        if spec.env_id in gym.registry:
+            continue
+        module = spec.env_cls.__module__
+        gym.register(
+            id=spec.env_id,
+            entry_point=f"{module}:make_single",
+            vector_entry_point=f"{module}:{spec.env_cls.__name__}",
+            disable_env_checker=False,
+        )

@@ -1,0 +1,183 @@
+"""What a task is, in one record: ``TaskSpec`` and the plain-data pieces it is made of.
+
+Each task module (``navigation``, ``reconstruction``, ``surgery``) ends with its ``SPEC``;
+``sonogym.envs.registry`` lists them. Everything outside ``envs/`` that needs to know about a
+task (training, evaluation, the demo, dataset recording, reports) reads it from the spec, so a
+new task is one new module plus one registry entry.
+
+The spec is plain data and small functions over the env's public API (no RL, plotting or CLI
+library): metrics with units and better-direction, the trajectory evaluation logs, the demo's
+frames, the observation -> LeRobot feature mapping for imitation learning, and the paper's
+per-algorithm hyperparameters and initial exploration (Isaac Lab task folders carry their
+agents' configs the same way).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+ExpertFn = Callable[[Any, dict[str, Any]], torch.Tensor]
+
+#: Conv layers of an image trunk: (out_channels, kernel, stride) per layer.
+ConvSpec = tuple[tuple[int, int, int], ...]
+
+#: The paper's / reference's trunks (ReLU convs without padding): four layers for the 2-D
+#: navigation image, three for the reconstruction cube and the surgery volume.
+CONV4: ConvSpec = ((32, 8, 2), (64, 4, 2), (64, 4, 2), (64, 3, 1))
+CONV3: ConvSpec = ((32, 8, 2), (64, 4, 2), (64, 3, 1))
+#: CPU-sized trunks with the same layer counts (narrower, smaller kernels; fit downsampled
+#: images the k8 kernels do not).
+SMALL_CONV4: ConvSpec = ((16, 5, 2), (32, 3, 2), (32, 3, 2), (32, 3, 1))
+SMALL_CONV3: ConvSpec = ((16, 5, 2), (32, 3, 2), (32, 3, 1))
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One episode metric: the env's ``final_info`` key, the paper's label, the unit it is
+    reported in, the factor from the env's unit to that unit, and which direction is better."""
+
+    key: str
+    label: str
+    unit: str
+    scale: float = 1.0
+    better: Literal["lower", "higher"] = "lower"
+
+
+@dataclass(frozen=True)
+class Track:
+    """The trajectory evaluation logs per step: ``fn(env, info)`` -> (N, D) in ``units``;
+    ``plane`` names the two columns the trajectory figure draws (horizontal, vertical)."""
+
+    columns: tuple[str, ...]
+    units: tuple[str, ...]
+    fn: Callable[[Any, dict[str, Any]], torch.Tensor]
+    plane: tuple[str, str]
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One LeRobot dataset feature taken from the env: ``fn(obs, info)`` -> (N, *shape).
+
+    ``dtype`` "image" (``shape`` (C, H, W) as the env gives it, float in [0, 1]; datasets store
+    LeRobot's (H, W, C)) or "float32"; ``names`` per LeRobot's ``info.json``."""
+
+    key: str
+    dtype: Literal["image", "float32"]
+    shape: tuple[int, ...]
+    names: tuple[str, ...] | None
+    fn: Callable[[Any, dict[str, Any]], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class Demo:
+    """How ``sonogym demo`` shows a task: ``image(obs)`` env 0's 2-D image in [0, 1] for the
+    frame sheet; ``frame(env, image, path)`` one RGB video frame (uint8 H x W x 3, sides
+    multiples of 16), ``path`` the tracked points so far (``Track`` columns, metres / rad)."""
+
+    image: Callable[[Any], torch.Tensor]
+    frame: Callable[[Any, torch.Tensor, np.ndarray], np.ndarray]
+    point: Callable[[Any, dict[str, Any]], np.ndarray]  # env 0's point drawn on the path
+
+
+@dataclass(frozen=True)
+class PPOParams:
+    """skrl PPO settings (paper Tab. ppo_hype; what it leaves open from the reference)."""
+
+    rollouts: int  # env steps per env between updates
+    learning_epochs: int
+    mini_batches: int
+    learning_rate: float  # initial, per optimiser step, adapted by KLAdaptiveLR
+    value_clip: float  # clip of the predicted value's change (value units, standardised)
+    discount_factor: float = 0.99
+    gae_lambda: float = 0.95
+    kl_threshold: float = 0.008  # KLAdaptiveLR target KL (not early stopping)
+    grad_norm_clip: float = 1.0
+    ratio_clip: float = 0.2
+    value_loss_scale: float = 1.0
+    entropy_loss_scale: float = 0.0  # reference
+    time_limit_bootstrap: bool = True  # see sonogym.agents.configs
+
+
+@dataclass(frozen=True)
+class A2CParams:
+    """skrl A2C settings (paper Tab. a2c_hype; A2C has no epochs: the table's
+    ``learning_epochs`` is not an A2C setting and is not used)."""
+
+    rollouts: int  # env steps per env between updates
+    mini_batches: int
+    learning_rate: float = 1e-4  # initial, adapted by KLAdaptiveLR (reference)
+    discount_factor: float = 0.99
+    gae_lambda: float = 0.95
+    kl_threshold: float = 0.008
+    grad_norm_clip: float = 1.0
+    entropy_loss_scale: float = 0.0
+    time_limit_bootstrap: bool = True
+
+
+@dataclass(frozen=True)
+class SafetyParams:
+    """Settings of the safe-RL algorithms (``ppo-sf``, ``ppo-lag``) on a task with a cost."""
+
+    cost_learning_rate: float = 1e-4  # Adam lr of the cost critic / cost value (reference)
+    cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (reference; c in [0, 1])
+    cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
+    pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd
+
+
+@dataclass(frozen=True)
+class TrainingDefaults:
+    """A task's RL defaults: the paper's tables and what the network needs to know.
+
+    ``trunks`` maps a network size ("paper", "small") to the conv layers of the task's image
+    trunk; ``vector_splits`` names vector observation entries the encoder splits into named
+    parts with one MLP each (surgery's pose: ("pos", 3), ("quat", 4)); ``init_log_std`` is the
+    Gaussian policy's initial log standard deviation in action units (exploration)."""
+
+    algos: tuple[str, ...]
+    ppo: PPOParams
+    a2c: A2CParams
+    timesteps: int  # env steps per env (reference trainer timesteps)
+    trunks: dict[str, ConvSpec]
+    num_envs: int = 128  # paper
+    obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
+    reward_scale: float = 1.0  # unitless factor on rewards before learning
+    init_log_std: float = 0.0  # log of sigma in action units
+    vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
+    safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """Everything the rest of the package knows about a task (see the module docstring).
+
+    ``expert(env, info)`` is the privileged expert (navigation, surgery) or heuristic
+    (reconstruction), named by ``expert_label``; ``features`` is None for a task without an
+    imitation-learning dataset."""
+
+    name: str
+    env_id: str
+    env_cls: type
+    config_cls: type
+    action_names: tuple[str, ...]  # one per action component, as datasets name them
+    expert: ExpertFn
+    expert_label: Literal["expert", "heuristic"]
+    metrics: tuple[Metric, ...]
+    track: Track
+    demo: Demo
+    training: TrainingDefaults
+    features: tuple[Feature, ...] | None = None
+
+    def metric(self, key: str) -> Metric:
+        for m in self.metrics:
+            if m.key == key:
+                return m
+        raise KeyError(f"{self.name} has no metric {key!r}; metrics: {self.metric_keys}")
+
+    @property
+    def metric_keys(self) -> tuple[str, ...]:
+        return tuple(m.key for m in self.metrics)

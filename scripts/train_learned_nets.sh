@@ -6,7 +6,7 @@ set -euo pipefail
 WORK=${1:-runs/lb-recipe}
 export OMP_NUM_THREADS=1
 PY=${PYTHON:-python}
-$PY -m sonogym.ultrasound.learned.recipe data  --work "$WORK"
-$PY -m sonogym.ultrasound.learned.recipe train --work "$WORK"
-$PY -m sonogym.ultrasound.learned.recipe ship  --work "$WORK"
-$PY -m sonogym.ultrasound.learned.recipe card  --work "$WORK"
+$PY -m sonogym.learned_training data  --work "$WORK"
+$PY -m sonogym.learned_training train --work "$WORK"
+$PY -m sonogym.learned_training ship  --work "$WORK"
+$PY -m sonogym.learned_training card  --work "$WORK"

@@ -39,7 +39,7 @@ def phantom(
     save_totalsegmentator(patient, out, combined=combined)
     typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
     if preview:
-        from sonogym.anatomy.preview import save_preview
+        from sonogym.viz.preview import save_preview
 
         path = save_preview(patient, out / "preview.png")
         typer.echo(f"wrote {path}")
@@ -71,7 +71,7 @@ def image(
     out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/image"),
 ) -> None:
     """Render ultrasound images at surface poses of a phantom or a patient folder, to PNG."""
-    from sonogym.ultrasound.render import parse_pose, render_command
+    from sonogym.viz.render import parse_pose, render_command
 
     if seed is not None and patient is not None:
         raise typer.BadParameter("give --seed or --patient, not both")
@@ -337,7 +337,7 @@ def lb_data(
     test_fraction: Annotated[float, typer.Option(help="Held-out fraction per phantom.")] = 0.125,
 ) -> None:
     """Write default learned-simulator training pairs (CT slice + `physical` preset image)."""
-    from sonogym.ultrasound.learned.data import write_default_pairs
+    from sonogym.learned_training.data import write_default_pairs
 
     hw = list(size or [192, 160])
     if len(hw) == 1:
@@ -366,8 +366,8 @@ def lb_train(
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
     """Train one pix2pix CT -> ultrasound generator on paired data."""
-    from sonogym.ultrasound.learned.data import PairedDataError
-    from sonogym.ultrasound.learned.train import train_pix2pix
+    from sonogym.learned_training.data import PairedDataError
+    from sonogym.learned_training.train import train_pix2pix
 
     try:
         m = train_pix2pix(

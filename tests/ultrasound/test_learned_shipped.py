@@ -5,14 +5,14 @@ import pytest
 import torch
 
 from sonogym.anatomy.labels import BONE_IDS
-from sonogym.ultrasound import ProbeGeometry, Slicer
-from sonogym.ultrasound.learned.evaluation import (
+from sonogym.learned_training.model_card import (
     LinearBaseline,
     bone_surface_f1,
     bone_surface_rows,
     detect_surface_rows,
     surface_f1,
 )
+from sonogym.ultrasound import ProbeGeometry, Slicer
 from sonogym.ultrasound.learned.shipped import (
     NUM_SHIPPED,
     WEIGHTS_DIR,

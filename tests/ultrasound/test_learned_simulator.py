@@ -7,8 +7,8 @@ from sonogym.anatomy.phantom import PhantomParams, load_phantom
 from sonogym.anatomy.surface import SkinSurface
 from sonogym.ultrasound import ModelBasedSimulator, ProbeGeometry, Slicer, UltrasoundSimulator
 from sonogym.ultrasound.learned import HistogramReference, UNet, UNetConfig
+from sonogym.ultrasound.learned.checkpoint import save_generator
 from sonogym.ultrasound.learned.simulator import LearnedSimulator
-from sonogym.ultrasound.learned.train import save_generator
 
 torch.set_num_threads(1)
 

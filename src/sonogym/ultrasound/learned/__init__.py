@@ -1,5 +1,6 @@
-"""Learning-based ultrasound simulation (pix2pix): networks, histogram matching, augmentation,
-paired-data format and training. See docs/learned.md."""
+"""Learning-based ultrasound simulation (pix2pix) at inference: networks, histogram matching,
+degradation, generator checkpoints, the shipped nets and ``LearnedSimulator``. Training lives
+in ``sonogym.learned_training``. See docs/learned.md."""
 
 from sonogym.ultrasound.learned.augment import down_up, random_down_up
 from sonogym.ultrasound.learned.histogram import CT_WINDOW_HU, HistogramReference, window_ct
@@ -18,7 +19,7 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    # lazy: the simulator pulls in the slicer and training modules
+    # lazy: the simulator pulls in the slicer
     if name == "LearnedSimulator":
         from sonogym.ultrasound.learned.simulator import LearnedSimulator
 

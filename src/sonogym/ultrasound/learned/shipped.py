@@ -1,7 +1,7 @@
 """The learned-simulator nets shipped with the package, and resolving a net spec to files.
 
 ``weights/net0.pt`` ... ``net4.pt`` are five generators trained by
-``sonogym.ultrasound.learned.recipe`` with seeds 0-4 (docs/learned_model_card.md). A net spec
+``sonogym.learned_training.recipe`` with seeds 0-4 (docs/learned_model_card.md). A net spec
 is a tuple whose items are ints (shipped nets, by index) or paths (a user's ``generator.pt``
 from ``sonogym lb-train``).
 """

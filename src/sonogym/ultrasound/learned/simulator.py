@@ -38,8 +38,8 @@ import torch
 import torch.nn.functional as F
 
 from sonogym.ultrasound.learned.augment import down_up
+from sonogym.ultrasound.learned.checkpoint import load_generator
 from sonogym.ultrasound.learned.histogram import window_ct
-from sonogym.ultrasound.learned.train import load_generator
 from sonogym.ultrasound.slicer import Slices
 
 HISTOGRAM_MODES = ("per_image", "first_batch", "none")

@@ -131,7 +131,7 @@ class LinearBaseline:
 @torch.no_grad()
 def predict(gen, hist, ct: torch.Tensor, size, batch_size: int = 16) -> torch.Tensor:
     """Generator output for windowed CT (N, 1, H, W), as in training (one LUT per batch)."""
-    from sonogym.ultrasound.learned.train import _resize
+    from sonogym.learned_training.train import _resize
 
     outs = []
     for i in range(0, ct.shape[0], batch_size):
@@ -141,7 +141,7 @@ def predict(gen, hist, ct: torch.Tensor, size, batch_size: int = 16) -> torch.Te
 
 
 def _labels(root: Path, split: str) -> torch.Tensor:
-    from sonogym.ultrasound.learned.data import load_labels, read_manifest
+    from sonogym.learned_training.data import load_labels, read_manifest
 
     m = read_manifest(root)
     labs = [load_labels(root, e) for e in m["pairs"] if e["split"] == split]
@@ -158,9 +158,9 @@ def model_card(work: str | Path) -> dict:
     """Per-net held-out metrics (own split and unseen phantom), the linear baseline's, the
     target images' bone F1, training cost and the pairwise SSIM matrix of the nets on one common
     input (net 0's unseen-phantom CT). Returns {"json": ..., "markdown": ...}."""
-    from sonogym.ultrasound.learned import recipe
-    from sonogym.ultrasound.learned.data import PairedDataset
-    from sonogym.ultrasound.learned.train import load_generator
+    from sonogym.learned_training import recipe
+    from sonogym.learned_training.data import PairedDataset
+    from sonogym.ultrasound.learned.checkpoint import load_generator
 
     work = Path(work)
     nets, rows = [], []

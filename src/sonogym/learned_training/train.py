@@ -22,13 +22,11 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from sonogym.learned_training.data import PairedDataset, read_manifest
 from sonogym.ultrasound.learned.augment import random_down_up
-from sonogym.ultrasound.learned.data import PairedDataset, read_manifest
+from sonogym.ultrasound.learned.checkpoint import save_generator
 from sonogym.ultrasound.learned.histogram import HistogramReference
 from sonogym.ultrasound.learned.networks import PatchDiscriminator, UNet, UNetConfig
-
-CHECKPOINT_FORMAT = "sonogym-lb-generator"
-CHECKPOINT_VERSION = 1
 
 
 def fit_size(h: int, w: int, factor: int) -> tuple[int, int]:
@@ -40,37 +38,6 @@ def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     if tuple(x.shape[-2:]) == tuple(size):
         return x
     return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-
-
-def save_generator(path: str | Path, gen: UNet, hist: HistogramReference, **meta) -> Path:
-    path = Path(path)
-    torch.save(
-        {
-            "format": CHECKPOINT_FORMAT,
-            "version": CHECKPOINT_VERSION,
-            "config": gen.config.to_dict(),
-            "state_dict": gen.state_dict(),
-            "histogram": hist.state_dict(),
-            **meta,
-        },
-        path,
-    )
-    return path
-
-
-def load_generator(
-    path: str | Path, device: torch.device | str = "cpu"
-) -> tuple[UNet, HistogramReference, dict]:
-    """(generator in eval mode, histogram reference, the checkpoint's other fields)."""
-    ck = torch.load(Path(path), map_location=device, weights_only=False)
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a sonogym learned-simulator generator checkpoint")
-    gen = UNet(UNetConfig.from_dict(ck["config"])).to(device)
-    gen.load_state_dict(ck["state_dict"])
-    gen.eval()
-    hist = HistogramReference.from_state_dict(ck["histogram"])
-    meta = {k: v for k, v in ck.items() if k not in ("config", "state_dict", "histogram")}
-    return gen, hist, meta
 
 
 @torch.no_grad()

@@ -1,6 +1,6 @@
 """The recipe of the shipped learned-simulator nets: data, training, shipping.
 
-``python -m sonogym.ultrasound.learned.recipe data|train|ship|card --work DIR`` (or
+``python -m sonogym.learned_training data|train|ship|card --work DIR`` (``__main__.py``; or
 ``scripts/train_learned_nets.sh``) rebuilds everything the package ships under
 ``sonogym/ultrasound/learned/weights/``:
 
@@ -17,13 +17,12 @@
 * ``train``: ``train_pix2pix`` with ``TRAIN`` settings, one net after the other.
 * ``ship``: copies the generators to the package's ``weights/net{k}.pt`` (without local
   paths).
-* ``card``: the model-card numbers (``sonogym.ultrasound.learned.evaluation``) as JSON and a
+* ``card``: the model-card numbers (``sonogym.learned_training.model_card``) as JSON and a
   Markdown table.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -48,7 +47,7 @@ def run_dir(work: Path, k: int) -> Path:
 
 
 def build_data(work: Path, nets=range(NUM_NETS), progress: bool = True) -> None:
-    from sonogym.ultrasound.learned.data import write_default_pairs
+    from sonogym.learned_training.data import write_default_pairs
 
     for k in nets:
         main, unseen = data_dirs(work, k)
@@ -66,7 +65,7 @@ def build_data(work: Path, nets=range(NUM_NETS), progress: bool = True) -> None:
 
 
 def train_all(work: Path, nets=range(NUM_NETS), progress: bool = True) -> list[dict]:
-    from sonogym.ultrasound.learned.train import train_pix2pix
+    from sonogym.learned_training.train import train_pix2pix
 
     out = []
     for k in nets:
@@ -82,8 +81,7 @@ def train_all(work: Path, nets=range(NUM_NETS), progress: bool = True) -> list[d
 def ship(work: Path, dest: Path | None = None, nets=range(NUM_NETS)) -> list[Path]:
     """Copy the trained generators into the package (``dest``: default the shipped folder),
     replacing the local data path by the recipe's description."""
-    import torch
-
+    from sonogym.ultrasound.learned.checkpoint import read_checkpoint, save_checkpoint
     from sonogym.ultrasound.learned.shipped import WEIGHTS_DIR
 
     dest = Path(dest or WEIGHTS_DIR)
@@ -91,44 +89,13 @@ def ship(work: Path, dest: Path | None = None, nets=range(NUM_NETS)) -> list[Pat
     paths = []
     for k in nets:
         src = run_dir(work, k) / "generator.pt"
-        ck = torch.load(src, map_location="cpu", weights_only=False)
+        ck = read_checkpoint(src)
         ck["data"] = (
-            f"sonogym.ultrasound.learned.recipe net {k}: physical preset, style seed "
+            f"sonogym.learned_training.recipe net {k}: physical preset, style seed "
             f"{STYLE_SEED_BASE + k}, phantoms {TRAIN_PHANTOMS[0]}-{TRAIN_PHANTOMS[-1]}"
         )
         ck["net"] = k
         ck.setdefault("image_size", list(IMAGE_SIZE))
         path = dest / f"net{k}.pt"
-        torch.save(ck, path)
-        paths.append(path)
+        paths.append(save_checkpoint(path, ck))
     return paths
-
-
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("stage", choices=["data", "train", "ship", "card", "all"])
-    ap.add_argument("--work", type=Path, default=Path("runs/lb-recipe"))
-    ap.add_argument("--nets", type=int, nargs="*", default=list(range(NUM_NETS)))
-    ap.add_argument("--threads", type=int, default=1)
-    a = ap.parse_args(argv)
-    import torch
-
-    torch.set_num_threads(a.threads)
-    if a.stage in ("data", "all"):
-        build_data(a.work, a.nets)
-    if a.stage in ("train", "all"):
-        train_all(a.work, a.nets)
-    if a.stage in ("ship", "all"):
-        for p in ship(a.work, nets=a.nets):
-            print(p)
-    if a.stage in ("card", "all"):
-        from sonogym.ultrasound.learned.evaluation import model_card
-
-        card = model_card(a.work)
-        (a.work / "model_card.json").write_text(json.dumps(card["json"], indent=1))
-        (a.work / "model_card.md").write_text(card["markdown"])
-        print(card["markdown"])
-
-
-if __name__ == "__main__":
-    main()

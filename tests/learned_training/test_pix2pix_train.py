@@ -7,8 +7,9 @@ import torch
 from typer.testing import CliRunner
 
 from sonogym.cli import app
-from sonogym.ultrasound.learned.data import write_default_pairs
-from sonogym.ultrasound.learned.train import load_generator, train_pix2pix
+from sonogym.learned_training.data import write_default_pairs
+from sonogym.learned_training.train import train_pix2pix
+from sonogym.ultrasound.learned.checkpoint import load_generator
 
 torch.set_num_threads(1)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from sonogym.ultrasound.learned.data import (
+from sonogym.learned_training.data import (
     PairedDataError,
     PairedDataset,
     random_physical_model,

@@ -271,7 +271,7 @@ def write_default_pairs(
             bar.update(m)
     bar.close()
     source = {
-        "generator": "sonogym.ultrasound.learned.data.write_default_pairs",
+        "generator": "sonogym.learned_training.data.write_default_pairs",
         "preset": "physical (randomised gain, PSF, attenuation)",
         "phantom_seeds": seeds,
         "phantom_spacing_m": phantom_spacing,

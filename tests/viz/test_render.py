@@ -6,7 +6,7 @@ import torch
 from typer.testing import CliRunner
 
 from sonogym.cli import app
-from sonogym.ultrasound.render import default_poses, parse_pose, render, render_command
+from sonogym.viz.render import default_poses, parse_pose, render, render_command
 
 
 def test_parse_pose():

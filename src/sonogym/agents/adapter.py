@@ -35,8 +35,9 @@ import torch.nn.functional as F
 
 from sonogym.envs.base import TorchVectorEnv
 
-#: Dict keys (or the single Box observation) treated as images by ``obs_downsample``.
-IMAGE_KEYS = ("us", "ct", "labels", "image", "_")
+#: Dict entries treated as images by ``obs_downsample`` (a Box observation of >= 2 dims, the
+#: navigation image, is one too); the reconstruction cube is not an image.
+IMAGE_KEYS = ("image",)
 
 
 @dataclass(frozen=True)

@@ -150,12 +150,6 @@ def protocol(name: str, held_out_patients: int = 1) -> Protocol:
 PROTOCOLS = ("idt", "odt-sim", "odt-patient")
 
 
-def protocol_of_simulator(simulator: str) -> str:
-    """The ODT protocol of the paper's Table 1 for a run's simulator group: LB -> odt-sim,
-    MB -> odt-patient."""
-    return "odt-sim" if simulator == "learned" else "odt-patient"
-
-
 def simulator_group(simulator: str | None) -> str:
     """The paper's simulator group: "LB" (learned) or "MB" (model-based presets)."""
     return "LB" if simulator == "learned" else "MB"

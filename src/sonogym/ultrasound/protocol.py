@@ -1,4 +1,5 @@
-"""The interface every ultrasound simulator implements (model-based now, learned later)."""
+"""The interface every ultrasound simulator implements (``ModelBasedSimulator``,
+``LearnedSimulator``)."""
 
 from __future__ import annotations
 

@@ -3,22 +3,23 @@
     python benchmarks/envs.py [--envs 16 128] [--steps 50] [--device cpu]
 
 Prints one table. Budget (DESIGN.md §7): >= 500 env-steps/s for 128 navigation envs on 2 cores.
-Phantom seed 0 at the default 1 mm; navigation with and without the arm in the loop.
+Phantom seed 0 at the default 1 mm; navigation with and without the arm in the loop. The last
+column is a partial reset of one env in eight (an autoreset's cost), median of 5.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 
-import gymnasium as gym
 import torch
 
-import sonogym  # noqa: F401
+from sonogym.envs.registry import make_vec
 
 
-def bench(env_id: str, n: int, steps: int, device: str, **kw) -> dict:
-    env = gym.make_vec(env_id, num_envs=n, device=device, **kw)
+def bench(task: str, n: int, steps: int, device: str, **kw) -> dict:
+    env = make_vec(task, n, device=device, **kw)
     env.reset(seed=0)
     g = torch.Generator().manual_seed(0)
     low = torch.as_tensor(env.single_action_space.low)
@@ -37,7 +38,20 @@ def bench(env_id: str, n: int, steps: int, device: str, **kw) -> dict:
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     dt = time.perf_counter() - t0
-    return {"ms/step": 1e3 * dt / steps, "env-steps/s": n * steps / dt}
+    mask = torch.zeros(n, dtype=torch.bool)
+    mask[::8] = True
+    resets = []
+    for _ in range(5):
+        t1 = time.perf_counter()
+        env.reset(options={"reset_mask": mask})
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        resets.append(time.perf_counter() - t1)
+    return {
+        "ms/step": 1e3 * dt / steps,
+        "env-steps/s": n * steps / dt,
+        "reset ms": 1e3 * statistics.median(resets),
+    }
 
 
 def main() -> None:
@@ -52,11 +66,6 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     devices = args.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
-    tasks = {
-        "navigation": "SonoGym/Navigation-v0",
-        "reconstruction": "SonoGym/Reconstruction-v0",
-        "surgery": "SonoGym/Surgery-v0",
-    }
     rows = []
     for device in devices:
         for name in args.tasks:
@@ -64,15 +73,17 @@ def main() -> None:
             for robot in robots:
                 kw = {} if robot == "default" else {"robot": robot}
                 for n in args.envs:
-                    r = bench(tasks[name], n, args.steps, device, simulator=args.simulator, **kw)
-                    rows.append((device, name, str(robot), n, r["ms/step"], r["env-steps/s"]))
+                    r = bench(name, n, args.steps, device, simulator=args.simulator, **kw)
+                    rows.append(
+                        (device, name, str(robot), n, r["ms/step"], r["env-steps/s"], r["reset ms"])
+                    )
     print(
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, simulator {args.simulator}"
     )
-    print("| device | task | robot | envs | ms/step | env-steps/s |")
-    print("|---|---|---|---|---|---|")
-    for d, t, rb, n, ms, sps in rows:
-        print(f"| {d} | {t} | {rb} | {n} | {ms:.1f} | {sps:.0f} |")
+    print("| device | task | robot | envs | ms/step | env-steps/s | reset 1/8 ms |")
+    print("|---|---|---|---|---|---|---|")
+    for d, t, rb, n, ms, sps, rs in rows:
+        print(f"| {d} | {t} | {rb} | {n} | {ms:.1f} | {sps:.0f} | {rs:.1f} |")
 
 
 if __name__ == "__main__":

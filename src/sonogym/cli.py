@@ -135,6 +135,13 @@ def train(
     obs_downsample: Annotated[
         int | None, typer.Option(help="Average-pool image observations by this factor.")
     ] = None,
+    obs_mode: Annotated[
+        str | None,
+        typer.Option(
+            help="Observation: the task's default (images), or 'state' (the privileged state), "
+            "'ct' / 'labels' (navigation, surgery)."
+        ),
+    ] = None,
     phantom_spacing: Annotated[
         float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
     ] = None,
@@ -167,6 +174,8 @@ def train(
         raise typer.BadParameter(str(e)) from None
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
     env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
+    if obs_mode is not None:
+        env_kwargs["obs_mode"] = obs_mode
     if learned_nets:
         env_kwargs["learned_nets"] = tuple(
             int(v) if v.strip().isdigit() else v.strip() for v in learned_nets.split(",")

@@ -140,20 +140,39 @@ def test_path_and_angle_accounting_of_a_scripted_episode():
             [0.0, 0.0, 0.0, 2.0],  # tilt clamped at 0.4: applied 0, costs 0
         ]
     )
-    env = _env(1, episode_length=len(acts), missing_rate=1.0)
-    env.reset(seed=0)
-    rewards = []
+    env = _env(1, episode_length=len(acts), missing_rate=1.0, robot=None)  # reached = command
+    _, info = env.reset(seed=0)
+    rewards, xz = [], [info["command"][0, :2]]
     for a in acts:
         _, r, _, _, info = env.step(a[None])
         rewards.append(r.item())
+        xz.append(env.command[0, :2].clone() if "final_info" not in info else xz[-1])
     want_r = [-0.03, -0.06, -0.06, -0.1, -0.2 - 0.2, -0.2, 0.0]
     np.testing.assert_allclose(rewards, want_r, atol=1e-6)
     fin = info["final_info"]
-    assert fin["trajectory_length_mm"].item() == pytest.approx(3 + 6 + math.sqrt(18), abs=1e-4)
+    # the path is the motion that happened on the frontal plane: the 3 + 6 + 4.24 mm steps on
+    # the skin, projected (the back slopes a little)
+    moved = sum(float((b - a).norm()) for a, b in zip(xz[:-1], xz[1:], strict=True)) * 1e3
+    assert fin["trajectory_length_mm"].item() == pytest.approx(moved, abs=1e-3)
+    assert moved == pytest.approx(3 + 6 + math.sqrt(18), rel=0.03)
     assert fin["total_rotation_deg"].item() == pytest.approx(math.degrees(0.7), abs=1e-4)
     assert fin["coverage"].item() == 0.0
     assert fin["return"].item() == pytest.approx(sum(want_r), abs=1e-5)
     assert info["objective"].item() == pytest.approx(sum(want_r), abs=1e-6)
+
+
+def test_path_counts_the_motion_that_happened_not_blocked_commands():
+    # 300 steps pushing +x at 6 mm per step from the centre: the workspace clamp (60 mm) stops
+    # the command after ~10 steps; the commanded steps would sum to 1,800 mm
+    env = _env(1, episode_length=300, missing_rate=1.0)
+    env.reset(seed=0)
+    push = torch.tensor([[2.0, 0.0, 0.0, 0.0]])
+    for _ in range(300):
+        obs, _, _, _, info = env.step(push)
+    length = info["final_info"]["trajectory_length_mm"].item()
+    start_to_edge = 60 + 15  # at most: the start lies within 15 mm of the centre
+    assert 45 <= length <= start_to_edge + 10, length
+    assert info["final_obs"]["path_length"][0, 0].item() == pytest.approx(length * 1e-3, rel=1e-5)
 
 
 def test_action_scaling_moves_the_command_in_si_units():

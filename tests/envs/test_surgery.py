@@ -13,6 +13,7 @@ from sonogym.envs.surgery import (
     FREE,
     UNSAFE,
     SurgeryEnv,
+    corridor_damping,
     surgery_expert,
     surgery_regions,
     surgery_reward,
@@ -58,12 +59,13 @@ def test_regions_on_hand_made_points():
     assert surgery_regions(p, hw, L).tolist() == want
 
 
-def _reward(p0, t0, p1, t1, depth=-L, anchored=True, hw=0.0055):
+P = 0.1  # unsafe_penalty (reward per unsafe step)
+
+
+def _reward(p0, t0, p1, t1, hw=0.0055):
     out = surgery_reward(
         torch.tensor([p0], dtype=torch.float64),
         torch.tensor([t0], dtype=torch.float64),
-        torch.tensor([depth], dtype=torch.float64),
-        torch.tensor([anchored]),
         torch.tensor([p1], dtype=torch.float64),
         torch.tensor([t1], dtype=torch.float64),
         torch.tensor([hw], dtype=torch.float64),
@@ -71,6 +73,7 @@ def _reward(p0, t0, p1, t1, depth=-L, anchored=True, hw=0.0055):
         W4,
         W5,
         W6,
+        P,
     )
     return [o[0] for o in out]
 
@@ -81,39 +84,42 @@ def test_reward_is_the_papers_formula_within_each_safe_region():
     pl = np.array([0, 0, -L])
     want = W4 * (np.linalg.norm(np.array(p0) - pl) - np.linalg.norm(np.array(p1) - pl))
     want += W5 * (0.3 - 0.25)
-    r, c, *_ = _reward(p0, 0.3, p1, 0.25)
-    assert r.item() == pytest.approx(want, abs=1e-9) and c.item() == 0
+    r, c, reg = _reward(p0, 0.3, p1, 0.25)
+    assert r.item() == pytest.approx(want, abs=1e-9) and c.item() == 0 and reg.item() == FREE
     # C_drill, deepening along the corridor: w6 (|p_t| - |p_t+1|) + w5 (...)
     p0, p1 = [0.001, 0.0, -0.03], [0.0005, 0.0, -0.02]
     want = W6 * (np.linalg.norm(p0) - np.linalg.norm(p1)) + W5 * (0.05 - 0.02)
-    r, c, _, _, depth, *_ = _reward(p0, 0.05, p1, 0.02, depth=-0.03)
-    assert r.item() == pytest.approx(want, abs=1e-9) and c.item() == 0
-    assert depth.item() == pytest.approx(-0.02)
+    r, c, reg = _reward(p0, 0.05, p1, 0.02)
+    assert r.item() == pytest.approx(want, abs=1e-9) and c.item() == 0 and reg.item() == DRILL
+    # C_free -> C_drill through p_l: the two formulas meet there (Phi = 0 at p_l, theta 0)
+    r, *_ = _reward([0, 0, -0.06], 0.0, [0, 0, -0.04], 0.0)
+    assert r.item() == pytest.approx(W4 * 0.01 + W6 * 0.01)
 
 
-def test_guard_retreat_and_readvance_inside_the_corridor_pay_nothing():
-    # deepest safe point so far -20 mm: moving up to -30 mm and back down pays 0 (axis, theta 0)
-    r_up, _, ap, at, depth, *_ = _reward([0, 0, -0.02], 0.0, [0, 0, -0.03], 0.0, depth=-0.02)
-    r_down, *_ = _reward(ap.tolist(), at.item(), [0, 0, -0.02], 0.0, depth=depth.item())
-    assert r_up.item() == pytest.approx(0.0, abs=1e-12)
-    assert r_down.item() == pytest.approx(0.0, abs=1e-12)
-    # going deeper than ever pays w6 per metre
-    r, *_ = _reward([0, 0, -0.02], 0.0, [0, 0, -0.015], 0.0, depth=-0.02)
-    assert r.item() == pytest.approx(W6 * 0.005)
+def test_backing_out_of_the_corridor_gives_back_what_going_in_earned():
+    r_in, *_ = _reward([0, 0, -0.03], 0.0, [0, 0, -0.02], 0.0)
+    r_out, *_ = _reward([0, 0, -0.02], 0.0, [0, 0, -0.03], 0.0)
+    assert r_in.item() == pytest.approx(W6 * 0.01) and r_out.item() == pytest.approx(-W6 * 0.01)
 
 
-def test_cost_and_unsafe_transitions():
-    # into the unsafe region: cost 1, reward 0 (paid on re-entry); within unsafe: 0
-    r, c, ap, *_ = _reward([0, 0, -0.02], 0.0, [0.01, 0, -0.02], 0.0, depth=-0.02)
-    assert c.item() == 1.0 and r.item() == 0.0
-    assert ap.tolist() == pytest.approx([0, 0, -0.02])  # the last safe state is kept
-    r, c, *_ = _reward([0, 0, -0.02], 0.0, [0.03, 0, -0.04], 0.0, depth=-0.02)
-    assert c.item() == 1.0 and r.item() == 0.0
-    # never safe yet (a data-collection start): no reward until the tip has been safe
-    r, c, _, _, _, anchored, _ = _reward(
-        [0.02, 0, -0.03], 0.0, [0.0, 0, -0.03], 0.0, anchored=False
-    )
-    assert r.item() == 0.0 and c.item() == 0.0 and anchored.item()
+def test_leaving_the_safe_set_costs_what_it_earned_plus_the_penalty():
+    # out of the corridor at 20 mm before the target: the insertion's value and w6 l are lost
+    p0, p1 = np.array([0, 0, -0.02]), np.array([0.01, 0, -0.02])
+    r, c, reg = _reward(p0.tolist(), 0.0, p1.tolist(), 0.0)
+    pl = np.array([0, 0, -L])
+    phi0 = W6 * (L - np.linalg.norm(p0))
+    phi1 = -W4 * np.linalg.norm(p1 - pl) - W6 * L
+    assert c.item() == 1.0 and reg.item() == UNSAFE
+    assert r.item() == pytest.approx(phi1 - phi0 - P)
+    assert r.item() < -W6 * L  # worse than losing the whole insertion
+    # within the unsafe region: the C_free formula's shaping toward p_l, minus the penalty
+    r, c, _ = _reward([0.03, 0, -0.04], 0.0, [0.02, 0, -0.04], 0.0)
+    want = W4 * (np.hypot(0.03, 0.01) - np.hypot(0.02, 0.01)) - P
+    assert c.item() == 1.0 and r.item() == pytest.approx(want)
+    # back into C_free: the step-up of w6 l is paid back, no penalty
+    r, c, reg = _reward([0.02, 0, -0.045], 0.0, [0.02, 0, -0.055], 0.0)
+    want = W6 * L + W4 * (np.hypot(0.02, 0.005) - np.hypot(0.02, 0.005))
+    assert c.item() == 0 and reg.item() == FREE and r.item() == pytest.approx(want)
 
 
 def _paper_reward_unguarded(path, thetas):
@@ -151,13 +157,10 @@ def test_no_closed_loop_through_the_unsafe_region_earns_reward():
     p = torch.tensor(np.array(path), dtype=torch.float64)
     th = torch.tensor(thetas, dtype=torch.float64)
     hw = torch.tensor([0.0055], dtype=torch.float64)
-    ap, at = p[:1], th[:1]
-    depth = torch.tensor([-L], dtype=torch.float64)
-    anchored = torch.tensor([True])
     rewards, costs = [], []
     for k in range(1, len(path)):
-        r, c, ap, at, depth, anchored, _ = surgery_reward(
-            ap, at, depth, anchored, p[k : k + 1], th[k : k + 1], hw, L, W4, W5, W6
+        r, c, _ = surgery_reward(
+            p[k - 1 : k], th[k - 1 : k], p[k : k + 1], th[k : k + 1], hw, L, W4, W5, W6, P
         )
         rewards.append(r.item())
         costs.append(c.item())
@@ -166,9 +169,11 @@ def test_no_closed_loop_through_the_unsafe_region_earns_reward():
     assert descent == pytest.approx(W4 * 0.02 + W6 * 0.03)  # to p_l, then 30 mm deeper
     n = len(loop)
     for i in range(3):
+        loop_costs = sum(costs[first - 1 + i * n : first - 1 + (i + 1) * n])
         ret = rewards[first - 1 + i * n : first - 1 + (i + 1) * n].sum()
-        assert ret <= 1e-9, f"loop {i} earned {ret}"
-    assert sum(costs) > 0  # the loop did pass through the unsafe region
+        assert loop_costs > 0  # the loop did pass through the unsafe region
+        # a closed path's potential terms cancel: only the unsafe steps' penalty remains
+        assert ret == pytest.approx(-P * loop_costs, abs=1e-9), f"loop {i} earned {ret}"
     # the printed formula without the guard would have paid for every loop
     one_loop = np.array(path[first - 1 : first + n])
     unguarded_loop = _paper_reward_unguarded(one_loop, [0.0] * len(one_loop))
@@ -292,36 +297,27 @@ def test_reward_and_cost_on_recorded_transitions():
         drill = ~free & (lat <= half_width) & (p[:, 2] <= 0)
         return np.where(free, FREE, np.where(drill, DRILL, UNSAFE))
 
-    def phi(p, th, m, reg):
-        f = -W4 * np.linalg.norm(p - pl, axis=1) + W6 * m
-        d = -W6 * np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + m**2)
-        return np.where(reg == FREE, f, d) - W5 * th
+    def phi(p, th):
+        reg = region(p)
+        out = -W4 * np.linalg.norm(p - pl, axis=1)
+        d = W6 * (L - np.linalg.norm(p, axis=1))
+        v = np.where(reg == DRILL, d, out) - W5 * th
+        return np.where(reg == UNSAFE, v - W6 * L, v)
 
-    p0 = states[0][:, :3]
-    reg = region(p0)
-    anchor, anchor_th, anchor_reg = p0.copy(), thetas[0].copy(), reg.copy()
-    m = np.where(reg == DRILL, np.maximum(-L, p0[:, 2]), -L)
     checked_paper = 0
     for t in range(150):
-        p1, th1 = states[t + 1][:, :3], thetas[t + 1]
-        reg1 = region(p1)
-        safe = reg1 != UNSAFE
-        m1 = np.where(reg1 == DRILL, np.maximum(m, p1[:, 2]), m)
-        a1 = np.where(safe[:, None], p1, anchor)
-        at1 = np.where(safe, th1, anchor_th)
-        ar1 = np.where(safe, reg1, anchor_reg)
-        want = phi(a1, at1, m1, ar1) - phi(anchor, anchor_th, m, anchor_reg)
+        p0, p1, th0, th1 = states[t][:, :3], states[t + 1][:, :3], thetas[t], thetas[t + 1]
+        unsafe = region(p1) == UNSAFE
+        want = phi(p1, th1) - phi(p0, th0) - P * unsafe
         assert np.allclose(rewards[t], want, atol=2e-4), t
-        assert np.array_equal(costs[t], (~safe).astype(float))
+        assert np.array_equal(costs[t], unsafe.astype(float))
         # where both states are in C_free the paper's formula holds as printed
-        p0 = states[t][:, :3]
-        both_free = (region(p0) == FREE) & (reg1 == FREE)
+        both_free = (region(p0) == FREE) & (region(p1) == FREE)
         paper = W4 * (np.linalg.norm(p0 - pl, axis=1) - np.linalg.norm(p1 - pl, axis=1)) + W5 * (
-            thetas[t] - th1
+            th0 - th1
         )
         assert np.allclose(rewards[t][both_free], paper[both_free], atol=2e-4)
         checked_paper += int(both_free.sum())
-        anchor, anchor_th, anchor_reg, m = a1, at1, ar1, m1
     assert checked_paper > 50
     assert np.concatenate(costs).sum() >= 0
 
@@ -414,3 +410,60 @@ def test_bad_options_raise():
     env.reset(seed=0)
     with pytest.raises(ValueError, match="shape"):
         env.step(torch.zeros(1, 3))
+
+
+def test_no_reward_trap_outside_the_safe_set():
+    """The expert beats standing still, which beats every way of leaving the safe set or
+    giving the insertion back (DESIGN.md §5, amended; the paper's "0 otherwise" paid +1.2 for
+    a constant push along the drill axis). Six policies, four envs each, in one batch."""
+    k, names = 4, ["expert", "still", "push-down", "dither", "deep, back out", "deep, out sideways"]
+    n = k * len(names)
+    env = _env(n, obs_mode="state")
+    _, info = env.reset(seed=3)
+    g = torch.Generator().manual_seed(0)
+    group = torch.arange(n) // k
+    deep = torch.zeros(n, dtype=torch.bool)  # reached 20 mm before the target
+    back_out = torch.tensor([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])
+    sideways = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])
+    for _ in range(env.episode_length):
+        expert = surgery_expert(info["state"], info["radius"])
+        deep |= info["state"][:, 2] > -0.02
+        acts = [
+            expert,
+            torch.zeros(n, 6),
+            torch.tensor([0.0, 0.0, 0.3, 0.0, 0.0, 0.0]).expand(n, 6),  # along the drill axis
+            torch.randn(n, 6, generator=g),  # what an untrained sigma = 1 policy does
+            torch.where(deep[:, None], back_out.expand(n, 6), expert),
+            torch.where(deep[:, None], sideways.expand(n, 6), expert),
+        ]
+        a = torch.stack(acts)[group, torch.arange(n)]
+        _, _, _, _, info = env.step(a)
+    returns = info["final_info"]["return"].view(len(names), k)
+    ret = dict(zip(names, returns, strict=True))
+    assert (ret["still"] == 0).all()
+    assert (ret["push-down"] < 0).all()  # leaves and stays out: less than standing still
+    assert (ret["deep, out sideways"] < 0).all()
+    assert ret["dither"].mean() < 0
+    assert (ret["deep, back out"] < ret["expert"]).all()  # backing out gives the depth back
+    assert ret["expert"].min() > returns[1:].max()  # the expert's return is the largest
+
+
+def test_corridor_damping_slows_lateral_and_rotational_motion_inside_c_drill():
+    d = torch.tensor([[0.01, -0.02, 0.03, 0.1, -0.1, 0.05]] * 2)
+    inside = torch.tensor([True, False])
+    out = corridor_damping(d, inside, 0.2)
+    assert torch.allclose(out[0], d[0] * torch.tensor([0.2, 0.2, 1.0, 0.2, 0.2, 0.2]))
+    assert torch.equal(out[1], d[1])  # outside C_drill nothing changes
+    # in the env: a tip on the axis in the corridor moves a fifth as far sideways (1: off)
+    moved = {}
+    for damping in (0.2, 1.0):
+        env = _env(1, obs_mode="state", corridor_damping=damping)
+        _, info = env.reset(seed=0)
+        for _ in range(400):  # the expert takes the tip into the corridor
+            _, _, _, _, info = env.step(surgery_expert(info["state"], info["radius"]))
+        assert info["region"].item() == DRILL
+        before = info["state"][0, :2].clone()
+        _, _, _, _, info = env.step(torch.tensor([[0.02, 0.0, 0.0, 0.0, 0.0, 0.0]]))
+        moved[damping] = float((info["state"][0, :2] - before).norm())
+    assert moved[0.2] == pytest.approx(0.2 * moved[1.0], rel=0.05)
+    assert moved[1.0] == pytest.approx(0.002, rel=0.05)  # 0.02 units x 0.1 m

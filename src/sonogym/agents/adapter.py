@@ -8,6 +8,11 @@ with the same layout:
   ``flatten_tensorized_space`` order, so skrl's space utilities agree), each entry reshaped to
   ``(N, prod(shape))`` and cast to float32;
 * optional per-key ``obs_scales`` multiply an entry before flattening (unitless factors);
+* optional running standardisation (``standardize_vectors``) of the vector entries (surgery's
+  pose in metres, state observations): each feature becomes (x - mean) / std over every
+  observation the training rollouts produced, so millimetre differences reach the network at
+  order 1 while the env's API stays in SI units. The statistics are a module
+  (``RunningStandardizer``) saved in the agent's checkpoints;
 * optional ``obs_downsample`` F average-pools 2-D image entries (the last two axes, e.g. the
   navigation image (1, 200, 150) -> (1, 100, 75) for F = 2) before storage, so the rollout
   memory shrinks by F^2 as well as the network's input.
@@ -32,6 +37,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from sonogym.envs.base import TorchVectorEnv
 
@@ -103,6 +109,33 @@ def obs_layout(space: gym.Space, obs_downsample: int = 1) -> ObsLayout:
     raise TypeError(f"unsupported observation space {space!r}: use a Box or a Dict of Boxes")
 
 
+class RunningStandardizer(nn.Module):
+    """Per-feature running mean and variance; ``forward(x, update)`` returns (x - mean) / std,
+    clipped to +-``clip`` std. Statistics change only when ``update`` is true (training
+    rollouts), merged batch by batch (Chan et al.); before any update it is the identity."""
+
+    def __init__(self, size: int, clip: float = 10.0, eps: float = 1e-8) -> None:
+        super().__init__()
+        self.clip, self.eps = float(clip), float(eps)
+        self.register_buffer("mean", torch.zeros(size, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(size, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    def forward(self, x: torch.Tensor, update: bool = False) -> torch.Tensor:
+        if update and x.shape[0] > 0:
+            xd = x.detach().double()
+            n = float(xd.shape[0])
+            b_mean, b_var = xd.mean(0), xd.var(0, unbiased=False)
+            total = self.count + n
+            delta = b_mean - self.mean
+            m2 = self.var * self.count + b_var * n + delta**2 * self.count * n / total
+            self.mean.add_(delta * n / total)
+            self.var.copy_(m2 / total)
+            self.count.copy_(total)
+        z = (x - self.mean.to(x.dtype)) / torch.sqrt(self.var.to(x.dtype) + self.eps)
+        return z.clamp(-self.clip, self.clip)
+
+
 class SkrlEnvAdapter:
     """A ``TorchVectorEnv`` seen as a skrl 2.x single-agent vectorized env (``Wrapper`` API).
 
@@ -111,6 +144,8 @@ class SkrlEnvAdapter:
         obs_downsample: integer factor F >= 1 for 2-D image entries (average pooling).
         obs_scales: per-entry multiplicative factors (unitless), e.g. ``{"path_length": 1.0}``.
         seed: seed of the first reset.
+        standardize_vectors: standardise the 1-D entries with running statistics
+            (``standardizer``), updated by ``step`` while ``update_stats`` is true.
     """
 
     def __init__(
@@ -119,6 +154,7 @@ class SkrlEnvAdapter:
         obs_downsample: int = 1,
         obs_scales: dict[str, float] | None = None,
         seed: int | None = None,
+        standardize_vectors: bool = False,
     ) -> None:
         if int(obs_downsample) != obs_downsample or obs_downsample < 1:
             raise ValueError(f"obs_downsample must be an integer >= 1, got {obs_downsample}")
@@ -134,6 +170,17 @@ class SkrlEnvAdapter:
         self._seed = seed
         self._observations: torch.Tensor | None = None
         self._info: dict[str, Any] = {}
+        self.standardizer: RunningStandardizer | None = None
+        self.update_stats = False
+        if standardize_vectors:
+            cols, start = [], 0
+            for shape, size in zip(self.layout.shapes, self.layout.sizes, strict=True):
+                if len(shape) == 1:
+                    cols += range(start, start + size)
+                start += size
+            if cols:
+                self._vector_cols = torch.tensor(cols, device=env.device)
+                self.standardizer = RunningStandardizer(len(cols)).to(env.device)
 
     # ------------------------------------------------------------------ skrl Wrapper API
     @property
@@ -169,7 +216,7 @@ class SkrlEnvAdapter:
         """Reset every env on the first call; later calls return the latest observations."""
         if self._observations is None:
             obs, self._info = self._env.reset(seed=self._seed)
-            self._observations = self.flatten(obs)
+            self._observations = self.flatten(obs, update=self.update_stats)
         return self._observations, self._info
 
     def step(
@@ -178,7 +225,7 @@ class SkrlEnvAdapter:
         """Step all envs: obs (N, D), reward (N, 1), terminated (N, 1), truncated (N, 1), info."""
         with torch.no_grad():
             obs, reward, terminated, truncated, info = self._env.step(actions)
-        self._observations = self.flatten(obs)
+        self._observations = self.flatten(obs, update=self.update_stats)
         self._info = info
         return (
             self._observations,
@@ -198,8 +245,12 @@ class SkrlEnvAdapter:
         self._env.close()
 
     # ------------------------------------------------------------------ observations
-    def flatten(self, obs: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
-        """Env observations (Box tensor or Dict of tensors) -> (N, layout.size) float32."""
+    def flatten(
+        self, obs: torch.Tensor | dict[str, torch.Tensor], update: bool = False
+    ) -> torch.Tensor:
+        """Env observations (Box tensor or Dict of tensors) -> (N, layout.size) float32,
+        vector entries standardised when enabled (``update``: add these observations to the
+        statistics first)."""
         entries = obs if isinstance(obs, dict) else {"_": obs}
         parts = []
         for key, shape in zip(self.layout.keys, self.layout.shapes, strict=True):
@@ -212,7 +263,11 @@ class SkrlEnvAdapter:
             if scale is not None:
                 x = x * scale
             parts.append(x.reshape(x.shape[0], -1))
-        return torch.cat(parts, dim=-1)
+        flat = torch.cat(parts, dim=-1)
+        if self.standardizer is not None:
+            cols = self._vector_cols
+            flat[:, cols] = self.standardizer(flat[:, cols], update=update)
+        return flat
 
     def final_observations(self, info: dict[str, Any], next_obs: torch.Tensor) -> torch.Tensor:
         """``next_obs`` with the true final observations of the envs whose episode just ended

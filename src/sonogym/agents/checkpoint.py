@@ -18,6 +18,29 @@ from sonogym.envs.policy import StatelessPolicy
 _CKPT = re.compile(r"agent_(\d+)\.pt$")
 
 
+class CheckpointError(ValueError):
+    """A checkpoint file cannot be read; the message names it and says what to do."""
+
+
+def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
+    """An agent checkpoint (skrl's ``{module name: state}`` dict), read without unpickling
+    code (``weights_only=True``): tensors, numbers, strings and containers only."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # truncated, empty, not a torch file, or pickled objects
+        raise CheckpointError(
+            f"{path} is not a readable agent checkpoint ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else 'no detail'}); pick another with "
+            "--checkpoint, or resume from an earlier one"
+        ) from None
+    if not isinstance(state, dict) or "policy" not in state:
+        raise CheckpointError(f"{path} is not an agent checkpoint (no 'policy' entry)")
+    return state
+
+
 def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
     """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
     found = []
@@ -58,8 +81,7 @@ def load_policy(
     high = np.asarray(cfg["action_space"]["high"], np.float32)
     box = gym.spaces.Box(low, high, dtype=np.float32)
     model = make_models(cfg["task"], layout, box, device, run_net(cfg))["policy"]
-    state = torch.load(checkpoint, map_location=device, weights_only=False)
-    model.load_state_dict(state["policy"])
+    model.load_state_dict(read_checkpoint(checkpoint, device)["policy"])
     model.eval()
     return model, cfg
 
@@ -76,8 +98,7 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
     critic = CostCritic(
         cfg["task"], policy.encoder.layout, policy.action_space, device, run_net(cfg)
     )
-    state = torch.load(checkpoint, map_location=device, weights_only=False)
-    critic.load_state_dict(state["cost_critic"])
+    critic.load_state_dict(read_checkpoint(checkpoint, device)["cost_critic"])
     critic.eval()
     return critic, float(cfg["task_config"]["cost_threshold"])
 
@@ -114,7 +135,13 @@ def rl_policy(
     """The run's policy acting in ``env`` (an env of the run's task)."""
     model, cfg = load_policy(run, checkpoint, device)
     tc = cfg["task_config"]
-    adapter = SkrlEnvAdapter(env, tc["obs_downsample"], tc["obs_scales"])
+    adapter = SkrlEnvAdapter(
+        env, tc["obs_downsample"], tc["obs_scales"],
+        standardize_vectors=tc.get("standardize_vectors", False),
+    )  # fmt: skip
+    if adapter.standardizer is not None:
+        path = checkpoint or latest_checkpoint(run)[0]
+        adapter.standardizer.load_state_dict(read_checkpoint(path, device)["obs_standardizer"])
     if cfg["algo"] == "ppo-sf":
         critic, threshold = load_cost_critic(run, checkpoint, device)
         return RLPolicy(model, adapter, critic, threshold)

@@ -50,6 +50,7 @@ class TaskRLConfig:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # initial log sigma of the Gaussian policy, action units
+    standardize_vectors: bool = False  # running standardisation of vector observations
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
     cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (cost in [0, 1])
@@ -79,6 +80,7 @@ def task_config(task: str, **overrides) -> TaskRLConfig:
         obs_scales=dict(t.obs_scales),
         reward_scale=t.reward_scale,
         init_log_std=t.init_log_std,
+        standardize_vectors=t.standardize_vectors,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,
         cost_limit=safety.cost_limit,

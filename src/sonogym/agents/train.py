@@ -31,7 +31,7 @@ from typing import Any
 import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
-from sonogym.agents.checkpoint import latest_checkpoint
+from sonogym.agents.checkpoint import latest_checkpoint, read_checkpoint
 from sonogym.agents.configs import TaskRLConfig, build_agent, task_config
 from sonogym.agents.configs import to_jsonable as _jsonable
 from sonogym.agents.networks import make_models
@@ -125,7 +125,11 @@ def train(
 
     torch.manual_seed(seed)
     env = make_env(cfg, cfg.num_envs, device)
-    adapter = SkrlEnvAdapter(env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start)
+    adapter = SkrlEnvAdapter(
+        env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start,
+        standardize_vectors=cfg.standardize_vectors,
+    )  # fmt: skip
+    adapter.update_stats = True
     models = make_models(
         task, adapter.layout, adapter.action_space, device, cfg.net, cfg.init_log_std
     )
@@ -180,9 +184,11 @@ def train(
     }
     (out / "config.json").write_text(json.dumps(_jsonable(resolved), indent=2))
 
+    if adapter.standardizer is not None:  # saved and restored with the agent
+        agent.checkpoint_modules["obs_standardizer"] = adapter.standardizer
     agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
     if found and resume:
-        agent.load(str(found[0]))
+        load_agent(agent, found[0])
     else:
         (out / "checkpoints").mkdir(parents=True, exist_ok=True)
         agent.save(str(out / "checkpoints" / "agent_0.pt"))  # the initial weights
@@ -220,6 +226,17 @@ def train(
         agent.writer.flush()
     env.close()
     return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+def load_agent(agent, path: Path) -> None:
+    """Restore every checkpointed module of ``agent`` from ``path`` (skrl's ``agent.load``
+    unpickles arbitrary objects; ``read_checkpoint`` reads tensors and plain data only)."""
+    state = read_checkpoint(path, agent.device)
+    missing = sorted(set(agent.checkpoint_modules) - set(state))
+    if missing:
+        raise ValueError(f"{path} lacks {missing}: was it written by another algorithm?")
+    for name, module in agent.checkpoint_modules.items():
+        module.load_state_dict(state[name])
 
 
 def _track_episode_metrics(agent, info: dict[str, Any]) -> None:

@@ -28,8 +28,10 @@ reconstructed surface voxels, coverage = |M| / |R| <= 1.
   probe-aligned grid, axes (x_U lateral, y_U elevation, z_U depth): x_U, y_U at
   (i - 19.5) * 3 mm (+-60 mm), z_U at (k + 0.5) * 3 mm below the probe face (0-120 mm);
   samples outside the patient-frame cube read 0;
-* ``"path_length"``: (1,) float32, metres, the path so far, sum of ||(dx, dy)|| of the applied
-  tangential steps (see Actions).
+* ``"path_length"``: (1,) float32, metres, the path so far: the motion that happened, sum over
+  steps of the distance the reached probe moved on the frontal (x, z) plane (a step the
+  workspace clamp blocks, or the arm does not follow, adds nothing; the reference measures it
+  the same way).
 
 ``"state"``: (6,) float32, the privileged state (pose of {U} in the vertebra frame {V}:
 position m, axis-angle rad), as ``info["state"]``.
@@ -65,7 +67,7 @@ configured patients (env i -> patient i % P).
 
 **Metrics** (``info["final_info"]`` when an episode ends): ``coverage`` = |M| / |R|;
 ``total_rotation_deg`` = sum (|dalpha| + |dbeta|) in degrees; ``trajectory_length_mm`` =
-sum ||(dx, dy)|| in mm; ``return``.
+the path length of the reached probe positions in mm (as ``path_length``); ``return``.
 
 ``info`` every step: ``state`` (N, 6); ``command`` (N, 4) = (x, z, yaw, tilt);
 ``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
@@ -313,7 +315,8 @@ class ReconstructionEnv(TorchVectorEnv):
         self.covered = torch.zeros(n, dtype=torch.long, device=dev)  # |M|
         self.translation_mm = torch.zeros(n, dtype=torch.float64, device=dev)  # sum |dx|+|dy|
         self.rotation_rad = torch.zeros(n, dtype=torch.float64, device=dev)  # sum |da|+|db|
-        self.path_mm = torch.zeros(n, dtype=torch.float64, device=dev)  # sum ||(dx, dy)||
+        self.path_mm = torch.zeros(n, dtype=torch.float64, device=dev)  # reached path, mm
+        self._reached_xz = torch.zeros(n, 2, dtype=torch.float64, device=dev)  # m
         self.objective = torch.zeros(n, dtype=torch.float64, device=dev)  # F so far
         self.visible_points = torch.zeros(n, dtype=torch.long, device=dev)
         self.sensed_points = torch.zeros(n, dtype=torch.long, device=dev)
@@ -334,6 +337,7 @@ class ReconstructionEnv(TorchVectorEnv):
         cmd[:, 3] = 0.0
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)
+        self._reached_xz[env_ids] = self._measured_xz(env_ids)
         self.volume[env_ids] = False
         for t in (
             self.covered,
@@ -376,11 +380,19 @@ class ReconstructionEnv(TorchVectorEnv):
         step_mm = delta[:, :2].double() * 1e3
         step_rad = (cmd[:, 2:] - before[:, 2:]).double()
         self.translation_mm += step_mm.abs().sum(-1)
-        self.path_mm += step_mm.norm(dim=-1)
+        reached = self._measured_xz(None)
+        self.path_mm += (reached - self._reached_xz).norm(dim=-1) * 1e3
+        self._reached_xz = reached
         self.rotation_rad += step_rad.abs().sum(-1)
         new = self._sense()
         self._reward = reconstruction_reward(new, step_mm, step_rad, cfg.w2, cfg.w3)
         self.objective += self._reward
+
+    def _measured_xz(self, env_ids: torch.Tensor | None) -> torch.Tensor:
+        """(K, 2) frontal-plane position (x, z) of the reached probe poses, m, float64."""
+        sl = slice(None) if env_ids is None else env_ids
+        x, z, _, _ = self.scene.measured_command(sl)
+        return torch.stack([x, z], -1).double()
 
     def _sense(self) -> torch.Tensor:
         """Image the target's surface from the reached poses, add it to V; returns the newly

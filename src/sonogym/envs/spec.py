@@ -147,6 +147,7 @@ class TrainingDefaults:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # log of sigma in action units
+    standardize_vectors: bool = False  # running standardisation of vector observations
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
     safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
 

@@ -24,29 +24,40 @@ volume windowed from [-1000, 2000] HU to [0, 1]; ``"labels"``: the label volume,
 
 **Actions.** (dp, dw) in {D}, unitless, (6,): scaled by ``action_scale`` (0.1 m, 0.1 m, 0.1 m,
 1 rad, 1 rad, 1 rad) and clipped per component to ``action_limit`` (30 mm, 30 mm, 30 mm,
-0.1 rad x 3), the documented clipping. The drill-tip target is the reached tip pose composed
-with the body-frame increment: T_target = T_tip (dp, exp(dw)); the KUKA takes one
-velocity-limited IK step toward it, so a command faster than the joints allow leaves a tracking
-error (``info["tracking_error"]``).
+0.1 rad x 3), the documented clipping. Inside C_drill (at the start of the step) the lateral
+translation (x_D, y_D) and all three rotation components are then multiplied by
+``corridor_damping`` (0.2, the reference's safety shaping; 1 turns it off), so a policy in the
+corridor moves 5x slower sideways than along the drill axis. The drill-tip target is the
+reached tip pose composed with the body-frame increment: T_target = T_tip (dp, exp(dw)); the
+KUKA takes one velocity-limited IK step toward it, so a command faster than the joints allow
+leaves a tracking error (``info["tracking_error"]``).
 
-**Reward.** The paper's piecewise reward, weights w4 = 30 per m, w5 = 5 per rad, w6 = 300 per
-m (the reference implementation's surgery reward works in metres), written as a potential
-of the last safe tip pose so that no loop through the unsafe region earns reward:
+**Reward.** The paper's piecewise reward inside the safe set, weights w4 = 30 per m, w5 = 5
+per rad, w6 = 300 per m (the reference implementation's surgery reward works in metres),
+written as a potential of the current tip state, plus a penalty per unsafe step:
 
-    Phi(p, theta, m) = -w5 theta + { -w4 |p - p_l| + w6 m          if p in C_free
-                                   { -w6 |(p_x, p_y, m)|            if p in C_drill
-    r_t = Phi(p_bar_t+1, theta_bar_t+1, m_t+1) - Phi(p_bar_t, theta_bar_t, m_t)
+    Phi(p, theta) = -w5 theta + { -w4 |p - p_l|                if p in C_free
+                                { w6 (l - |p|)                 if p in C_drill
+                                { -w4 |p - p_l| - w6 l         if p is unsafe
+    r_t = Phi(p_t+1, theta_t+1) - Phi(p_t, theta_t) - unsafe_penalty c_t
 
-theta is the angle between the drill axis z_D and z_G (the drill is symmetric about its axis);
-m (<= 0) is the deepest p_z reached inside C_drill so far (-l at the start): the guard, so
-insertion progress pays only when the deepest safe point improves; p_bar is the last safe tip
-pose (the current one when safe). Within C_free this is the paper's
-w4 (|p_t - p_l| - |p_t+1 - p_l|) + w5 (theta_t - theta_t+1), within C_drill the paper's
-w6 (|p_t| - |p_t+1|) + w5 (...) with p_z replaced by m; moves inside the unsafe region pay 0
-(the paper's "0 otherwise"), and the step back into a safe region pays the potential
-difference to where the tip left safety, so every closed path's return is the (one-off) gain
-of m. Before the tip has been safe once (possible only with ``require_free_start=False``)
-rewards are 0. Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
+theta is the angle between the drill axis z_D and z_G (the drill is symmetric about its axis).
+Within C_free this is the paper's w4 (|p_t - p_l| - |p_t+1 - p_l|) + w5 (theta_t - theta_t+1),
+within C_drill the paper's w6 (|p_t| - |p_t+1|) + w5 (...); the two agree at p_l.
+
+**Deviation from the paper** (DESIGN.md §5, amended): the paper pays 0 outside the safe set.
+That makes leaving free, and with the drill's reach a constant "push along the drill axis"
+ended its episodes outside the safe set with +1.22 (another seed set: +0.69), more than
+standing still (0); the reference avoided the trap with dense shaping everywhere. Here an
+unsafe state is worth w6 l = 15 (the whole insertion reward) less than the C_free formula, so
+leaving the safe set gives back everything inside it earned, and each unsafe step costs
+``unsafe_penalty`` (0.1) more. Being paid for the current state (not the deepest point
+reached, as a guard on the paper's formula did before) means backing out of the corridor
+gives back what going in earned. Consequences, tested: no closed path earns reward (a
+potential), a policy that leaves the safe set and stays out earns less than standing still,
+unit-noise dithering earns less than standing still, reaching depth and backing out earns
+less than staying, and the expert's return is the largest of these.
+Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
 
 **Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
 by IK. Drill: nominal joints (solved once per patient: tip 90 mm above p_l on the trajectory's
@@ -63,8 +74,7 @@ fraction of the states p_1 ... p_T in C_free or C_drill; ``return``.
 
 ``info`` every step: ``state`` (N, 6); ``cost`` (N,); ``region`` (N,) int64 (0 C_free,
 1 C_drill, 2 unsafe); ``safe`` (N,) bool; ``radius`` (N,) planned corridor radius r (m);
-``max_depth`` (N,) m; ``tracking_error`` (N,) distance (m) between the commanded and reached
-tip after the step.
+``tracking_error`` (N,) distance (m) between the commanded and reached tip after the step.
 """
 
 from __future__ import annotations
@@ -142,6 +152,8 @@ class SurgeryConfig:
     w4: float = 30.0  # reward per m of progress toward p_l in C_free (paper)
     w5: float = 5.0  # reward per rad of drill-axis alignment (paper)
     w6: float = 300.0  # reward per m of progress toward {G} in C_drill (paper)
+    unsafe_penalty: float = 0.1  # reward lost per step that ends in the unsafe region
+    corridor_damping: float = 0.2  # factor on lateral + rotational actions in C_drill; 1: off
 
     def __post_init__(self) -> None:
         if self.obs_mode not in OBS_MODES:
@@ -158,6 +170,10 @@ class SurgeryConfig:
                 raise ValueError(f"{name} needs 6 positive values, got {v}")
         if not (self.skin_distance > 0 and self.start_height >= 0):
             raise ValueError("skin_distance must be > 0 and start_height >= 0 (metres)")
+        if not 0.0 < self.corridor_damping <= 1.0:
+            raise ValueError(f"corridor_damping must be in (0, 1], got {self.corridor_damping}")
+        if self.unsafe_penalty < 0:
+            raise ValueError(f"unsafe_penalty must be >= 0, got {self.unsafe_penalty}")
         if isinstance(self.patients, int | str):
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
@@ -189,27 +205,28 @@ def surgery_regions(
 def surgery_potential(
     p: torch.Tensor,
     theta: torch.Tensor,
-    depth: torch.Tensor,
     region: torch.Tensor,
     skin_distance: float,
     w4: float,
     w5: float,
     w6: float,
 ) -> torch.Tensor:
-    """Phi of safe tip states (see the module docstring): p (N, 3) m in {G}, theta (N,) rad,
-    depth m (N,) <= 0 (deepest p_z reached in C_drill), region (N,) FREE or DRILL."""
+    """Phi of tip states (see the module docstring): p (N, 3) m in {G}, theta (N,) rad, region
+    (N,) FREE, DRILL or UNSAFE.
+
+    C_free: -w4 |p - p_l| - w5 theta; C_drill: w6 (l - |p|) - w5 theta (equal at p_l);
+    unsafe: -w4 |p - p_l| - w5 theta - w6 l, below every safe state near the corridor."""
     p_l = torch.zeros_like(p)
     p_l[:, 2] = -skin_distance
-    free = -w4 * (p - p_l).norm(dim=-1) + w6 * depth
-    drill = -w6 * torch.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + depth**2)
-    return torch.where(region == FREE, free, drill) - w5 * theta
+    outside = -w4 * (p - p_l).norm(dim=-1)
+    drill = w6 * (skin_distance - p.norm(dim=-1))
+    phi = torch.where(region == DRILL, drill, outside) - w5 * theta
+    return torch.where(region == UNSAFE, phi - w6 * skin_distance, phi)
 
 
 def surgery_reward(
-    anchor_p: torch.Tensor,
-    anchor_theta: torch.Tensor,
-    depth: torch.Tensor,
-    anchored: torch.Tensor,
+    p: torch.Tensor,
+    theta: torch.Tensor,
     p_next: torch.Tensor,
     theta_next: torch.Tensor,
     half_width: torch.Tensor,
@@ -217,33 +234,28 @@ def surgery_reward(
     w4: float,
     w5: float,
     w6: float,
-) -> tuple[torch.Tensor, ...]:
-    """One transition of the guarded piecewise reward (module docstring).
+    unsafe_penalty: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One transition: reward Phi(s_t+1) - Phi(s_t) - unsafe_penalty c_t, cost
+    c_t = 1[p_t+1 unsafe] and the region of p_t+1 (module docstring).
 
-    Args:
-        anchor_p, anchor_theta: (N, 3) m and (N,) rad, the last safe tip state before the step.
-        depth: (N,) m, deepest p_z reached inside C_drill before the step (-l initially).
-        anchored: (N,) bool, whether the tip has been safe at least once.
-        p_next, theta_next: the tip state after the step ({G}, m and rad).
-        half_width: (N,) m, d/2 = r + 2 mm.
-
-    Returns:
-        reward (N,), cost (N,) = 1[p_next unsafe], and the updated
-        (anchor_p, anchor_theta, depth, anchored, region_next).
-    """
+    p, p_next: (N, 3) tip positions in {G} before and after, m; theta, theta_next: (N,) drill-axis
+    angles, rad; half_width: (N,) d/2 = r + 2 mm, m."""
     l = skin_distance
-    region = surgery_regions(p_next, half_width, l)
-    safe = region != UNSAFE
-    new_depth = torch.where(region == DRILL, torch.maximum(depth, p_next[:, 2]), depth)
-    new_p = torch.where(safe[:, None], p_next, anchor_p)
-    new_theta = torch.where(safe, theta_next, anchor_theta)
-    old_region = surgery_regions(anchor_p, half_width, l)
-    phi_old = surgery_potential(anchor_p, anchor_theta, depth, old_region, l, w4, w5, w6)
-    new_anchor_region = torch.where(safe, region, old_region)
-    phi_new = surgery_potential(new_p, new_theta, new_depth, new_anchor_region, l, w4, w5, w6)
-    reward = torch.where(anchored, phi_new - phi_old, torch.zeros_like(phi_new))
-    cost = (~safe).to(p_next.dtype)
-    return reward, cost, new_p, new_theta, new_depth, anchored | safe, region
+    region = surgery_regions(p, half_width, l)
+    region_next = surgery_regions(p_next, half_width, l)
+    phi = surgery_potential(p, theta, region, l, w4, w5, w6)
+    phi_next = surgery_potential(p_next, theta_next, region_next, l, w4, w5, w6)
+    cost = (region_next == UNSAFE).to(p_next.dtype)
+    return phi_next - phi - unsafe_penalty * cost, cost, region_next
+
+
+def corridor_damping(delta: torch.Tensor, in_corridor: torch.Tensor, factor: float):
+    """The reference's safety shaping: inside C_drill the lateral translation (x_D, y_D) and
+    every rotation component of the scaled, clipped action ``delta`` (N, 6) are multiplied by
+    ``factor``; elsewhere, and along the drill axis z_D, the action is unchanged."""
+    scale = torch.tensor([factor, factor, 1.0, factor, factor, factor], device=delta.device)
+    return torch.where(in_corridor[:, None], delta * scale.to(delta.dtype), delta)
 
 
 def surgery_expert(
@@ -362,10 +374,6 @@ class SurgeryEnv(TorchVectorEnv):
         self._state = torch.zeros(n, 6, **f32)
         self._theta = torch.zeros(n, **f32)
         self._region = torch.zeros(n, dtype=torch.long, device=dev)
-        self._anchor_p = torch.zeros(n, 3, **f32)
-        self._anchor_theta = torch.zeros(n, **f32)
-        self._depth = torch.full((n,), -cfg.skin_distance, **f32)
-        self._anchored = torch.zeros(n, dtype=torch.bool, device=dev)
         self._cost = torch.zeros(n, **f32)
         self._safe_steps = torch.zeros(n, **f32)
         self._tracking_error = torch.zeros(n, **f32)
@@ -397,14 +405,7 @@ class SurgeryEnv(TorchVectorEnv):
         state, theta = self._measure(env_ids)
         self._state[env_ids], self._theta[env_ids] = state, theta
         region = surgery_regions(state[:, :3], self.half_width[env_ids], cfg.skin_distance)
-        safe = region != UNSAFE
-        depth = torch.full((k,), -cfg.skin_distance, dtype=torch.float32, device=self.device)
-        depth = torch.where(region == DRILL, torch.maximum(depth, state[:, 2]), depth)
         self._region[env_ids] = region
-        self._anchor_p[env_ids] = state[:, :3]
-        self._anchor_theta[env_ids] = theta
-        self._depth[env_ids] = depth
-        self._anchored[env_ids] = safe
         self._cost[env_ids] = 0.0
         self._safe_steps[env_ids] = 0.0
         self._tracking_error[env_ids] = 0.0
@@ -426,16 +427,16 @@ class SurgeryEnv(TorchVectorEnv):
         delta = torch.maximum(
             torch.minimum(actions * self.action_scale, self.action_limit), -self.action_limit
         )
+        if cfg.corridor_damping != 1.0:
+            delta = corridor_damping(delta, self._region == DRILL, cfg.corridor_damping)
         target_pos = sc.tip_pos + (sc.tip_rot @ delta[:, :3].unsqueeze(-1)).squeeze(-1)
         target_rot = sc.tip_rot @ matrix_from_axis_angle(delta[:, 3:])
         res = sc.step_drill(target_pos, target_rot)
         self._tracking_error = (target_pos - res.pos).norm(dim=-1)
         state, theta = self._measure(None)
-        reward, cost, ap, at, depth, anchored, region = surgery_reward(
-            self._anchor_p,
-            self._anchor_theta,
-            self._depth,
-            self._anchored,
+        reward, cost, region = surgery_reward(
+            self._state[:, :3],
+            self._theta,
             state[:, :3],
             theta,
             self.half_width,
@@ -443,10 +444,10 @@ class SurgeryEnv(TorchVectorEnv):
             cfg.w4,
             cfg.w5,
             cfg.w6,
+            cfg.unsafe_penalty,
         )
         self._reward = reward
         self._cost = cost
-        self._anchor_p, self._anchor_theta, self._depth, self._anchored = ap, at, depth, anchored
         self._region = region
         self._state, self._theta = state, theta
         self._safe_steps += (region != UNSAFE).float()
@@ -474,7 +475,6 @@ class SurgeryEnv(TorchVectorEnv):
             "region": self._region.clone(),
             "safe": self._region != UNSAFE,
             "radius": self.scene.radius.clone(),
-            "max_depth": self._depth.clone(),
             "tracking_error": self._tracking_error.clone(),
         }
 
@@ -557,6 +557,10 @@ SPEC = TaskSpec(
         a2c=A2CParams(rollouts=64, mini_batches=4),
         timesteps=200_000,
         trunks={"paper": CONV3, "small": SMALL_CONV3},
+        # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
+        # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
+        init_log_std=math.log(0.05),
+        standardize_vectors=True,  # poses in metres: mm differences at order 1
         vector_splits={"pose": (("pos", 3), ("quat", 4))},
         safety=SafetyParams(),
     ),

@@ -1,0 +1,66 @@
+"""Exploration and input scales per task: surgery's initial sigma fits its corridor, vector
+observations are standardised by running statistics that checkpoints keep."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from sonogym.agents.adapter import RunningStandardizer, SkrlEnvAdapter
+from sonogym.agents.checkpoint import read_checkpoint, rl_policy
+from sonogym.agents.configs import task_config
+from sonogym.agents.networks import make_models
+from sonogym.agents.train import train
+from sonogym.envs.registry import make_vec
+
+
+def test_surgery_explores_at_the_corridors_scale():
+    cfg = task_config("surgery")
+    # ~5 mm / 0.05 rad per command, not sigma = 1
+    assert math.exp(cfg.init_log_std) == pytest.approx(0.05)
+    env = make_vec("surgery", 1, obs_mode="state", phantom_spacing=0.002)
+    adapter = SkrlEnvAdapter(env)
+    model = make_models("surgery", adapter.layout, adapter.action_space, "cpu", "small",
+                        cfg.init_log_std)["policy"]  # fmt: skip
+    assert torch.allclose(model.log_std.exp(), torch.full((6,), 0.05))
+    # navigation and reconstruction keep the sigma = 1 that their CPU runs learned with
+    assert task_config("navigation").init_log_std == task_config("reconstruction").init_log_std == 0
+
+
+def test_running_standardizer_matches_the_pooled_statistics():
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(3.0, 0.01, (n, 4)) for n in (5, 17, 1, 40)]
+    s = RunningStandardizer(4)
+    x0 = torch.tensor(batches[0])
+    assert torch.allclose(s(x0), x0, rtol=1e-7)  # no update yet: the identity
+    for b in batches:
+        s(torch.tensor(b), update=True)
+    pooled = np.concatenate(batches)
+    np.testing.assert_allclose(s.mean.numpy(), pooled.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(s.var.numpy(), pooled.var(0), rtol=1e-9)
+    z = s(torch.tensor(pooled)).numpy()
+    np.testing.assert_allclose(z.mean(0), 0, atol=1e-9)
+    np.testing.assert_allclose(z.std(0), 1, atol=1e-4)  # eps 1e-8 against var 1e-4
+
+
+def test_surgery_state_inputs_reach_the_network_at_order_one(tmp_path):
+    torch.set_num_threads(1)
+    run = tmp_path / "sur"
+    train("surgery", "ppo", envs=4, steps=32, out=run, patients=(0,), progress=False,
+          env_kwargs=dict(phantom_spacing=0.002, obs_mode="state", episode_length=16))  # fmt: skip
+    ck = read_checkpoint(run / "checkpoints" / "agent_32.pt")
+    stats = ck["obs_standardizer"]
+    assert stats["count"] == 32 * 4 + 4  # every rollout observation, the first reset's too
+    env = make_vec("surgery", 8, obs_mode="state", phantom_spacing=0.002)
+    obs, _ = env.reset(seed=5)
+    raw = obs[:, :3]
+    assert raw.abs().max() < 0.3  # metres: millimetre differences are 1e-3 at the network
+    policy = rl_policy(run, env)
+    z = policy.adapter.flatten(obs)
+    assert 0.3 < float(z[:, :3].abs().mean()) < 5.0  # standardised with the run's statistics
+    assert policy.adapter.update_stats is False  # evaluation does not move the statistics
+    policy.act(obs, {})
+    assert policy.adapter.standardizer.count.item() == stats["count"].item()

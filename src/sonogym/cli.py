@@ -31,11 +31,17 @@ def phantom(
     combined: Annotated[
         bool, typer.Option(help="Write one combined label map instead of per-class masks.")
     ] = False,
+    force: Annotated[
+        bool, typer.Option(help="Replace the subject folder --out if it exists.")
+    ] = False,
 ) -> None:
-    """Build a procedural lumbar phantom and write ct.nii.gz + segmentations/ (+ preview.png)."""
+    """Build a procedural lumbar phantom and write ct.nii.gz + segmentations/ (+ preview.png).
+    An existing --out is never mixed into: it is refused unless --force replaces it."""
     from sonogym.anatomy import PhantomParams, load_phantom, save_totalsegmentator
+    from sonogym.runs import prepare_output
 
     patient = load_phantom(seed, PhantomParams(spacing=spacing * 1e-3))
+    prepare_output(out, resume=False, force=force, what="subject")
     save_totalsegmentator(patient, out, combined=combined)
     typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
     if preview:
@@ -100,11 +106,26 @@ def demo(
     ),
     envs: Annotated[int, typer.Option(help="Envs per task.")] = 4,
     seed: Annotated[int, typer.Option(help="Episode seed.")] = 0,
+    patient: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="A TotalSegmentator subject folder (ct.nii.gz + segmentations/) or a phantom "
+            "seed; repeatable (default: phantom 0)."
+        ),
+    ] = None,
+    task: Annotated[
+        list[str] | None, typer.Option(help="Only this task; repeatable (default: all).")
+    ] = None,
 ) -> None:
-    """Run every task's expert on the default phantom; write frames, a video and metrics."""
+    """Run every task's expert on the default phantom or your own subjects; write frames, a
+    video and metrics per task."""
     from sonogym.evaluation.demo import run_demo
 
-    run_demo(out, num_envs=envs, seed=seed, log=typer.echo)
+    if envs < 1:
+        raise typer.BadParameter(f"--envs must be a positive integer, got {envs}")
+    pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patient) if patient else None
+    run_demo(out, num_envs=envs, seed=seed, tasks=tuple(task) if task else None, patients=pats,
+             log=typer.echo)  # fmt: skip
 
 
 @app.command()
@@ -113,11 +134,20 @@ def train(
     algo: Annotated[
         str, typer.Option(help="ppo, a2c (all tasks); ppo-sf, ppo-lag (surgery).")
     ] = "ppo",
-    envs: Annotated[int | None, typer.Option(help="Parallel envs (default 128).")] = None,
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="Device preset for envs, network size, image downsampling and threads: auto "
+            "(default: paper on CUDA, cpu otherwise), cpu or paper."
+        ),
+    ] = None,
+    envs: Annotated[int | None, typer.Option(help="Parallel envs (default: the preset's).")] = None,
     steps: Annotated[
         int | None, typer.Option(help="Env steps per env in total (default: the paper's).")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of torch and the envs.")] = 0,
+    seed: Annotated[
+        int | None, typer.Option(help="Seed of torch and the envs (default 0).")
+    ] = None,
     patients: Annotated[
         list[str] | None,
         typer.Option(help="Phantom seed or TotalSegmentator folder; repeatable (default 0)."),
@@ -146,16 +176,19 @@ def train(
         float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
     ] = None,
     net: Annotated[
-        str | None, typer.Option(help="Conv trunk: paper (default) or small (CPU-sized).")
+        str | None, typer.Option(help="Conv trunk: paper or small (default: the preset's).")
     ] = None,
     threads: Annotated[
-        int | None, typer.Option(help="torch CPU threads (default: torch's; 1 on a busy CPU).")
+        int | None, typer.Option(help="torch CPU threads (default: the preset's).")
     ] = None,
-    device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+    device: Annotated[str | None, typer.Option(help="cpu or cuda[:i] (default cpu).")] = None,
     out: Annotated[
         Path | None, typer.Option(help="Run directory (default runs/<task>-<algo>-s<seed>).")
     ] = None,
-    resume: Annotated[bool, typer.Option(help="Continue from the run's last checkpoint.")] = False,
+    resume: Annotated[
+        bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
+    ] = False,
+    force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
     protocol: Annotated[
         str | None,
         typer.Option(
@@ -164,7 +197,8 @@ def train(
         ),
     ] = None,
 ) -> None:
-    """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory."""
+    """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory.
+    Settings resolve from the task's defaults, then the device preset, then these options."""
     from sonogym.agents.train import train as run_train
     from sonogym.envs.registry import check_algo
 
@@ -172,6 +206,14 @@ def train(
         check_algo(task, algo)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+    for name, v in (("--steps", steps), ("--envs", envs), ("--obs-downsample", obs_downsample),
+                    ("--threads", threads)):  # fmt: skip
+        if v is not None and v < 1:
+            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    from sonogym.agents.presets import PRESETS
+
+    if preset is not None and preset not in PRESETS:
+        raise typer.BadParameter(f"unknown preset {preset!r}; choose from {list(PRESETS)}")
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
     env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
     if obs_mode is not None:
@@ -195,28 +237,11 @@ def train(
         except ValueError as e:
             raise typer.BadParameter(str(e)) from None
         pats, simulator = None, None
-    if threads is not None:
-        import torch
-
-        torch.set_num_threads(threads)
-    try:
-        res = run_train(
-            task,
-            algo,
-            envs=envs,
-            steps=steps,
-            seed=seed,
-            out=out,
-            patients=pats,
-            simulator=simulator,
-            obs_downsample=obs_downsample,
-            net=net,
-            env_kwargs=env_kwargs,
-            device=device,
-            resume=resume,
-        )
-    except FileExistsError as e:
-        raise typer.BadParameter(str(e)) from None
+    res = run_train(
+        task, algo, envs=envs, steps=steps, seed=seed, out=out, patients=pats,
+        simulator=simulator, obs_downsample=obs_downsample, net=net, env_kwargs=env_kwargs,
+        preset=preset, threads=threads, device=device, resume=resume, force=force, log=typer.echo,
+    )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 
 
@@ -239,6 +264,10 @@ def eval_(
     held_out: Annotated[
         int, typer.Option(help="odt-patient: number of held-out phantoms (seeds 5, 6, ...).")
     ] = 1,
+    checkpoint: Annotated[
+        Path | None,
+        typer.Option(help="Checkpoint to evaluate (default: the run's newest readable one)."),
+    ] = None,
 ) -> None:
     """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
     the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
@@ -250,7 +279,7 @@ def eval_(
     try:
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
-            held_out_patients=held_out,
+            held_out_patients=held_out, checkpoint=checkpoint,
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
@@ -397,7 +426,18 @@ def lb_train(
 
 
 def main() -> None:
-    app()
+    """The ``sonogym`` entry point: bad input (a missing or malformed file, an invalid option,
+    a folder that already holds a run) ends with one line naming the problem and the fix, not a
+    traceback; an interrupted training run (Ctrl-C) has saved a checkpoint and exits with 130."""
+    from sonogym.agents.train import TrainingInterrupted
+
+    try:
+        app()
+    except TrainingInterrupted:
+        raise SystemExit(130) from None
+    except (ValueError, OSError) as e:  # includes the loaders' named errors
+        typer.echo(f"sonogym: error: {e}", err=True)
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

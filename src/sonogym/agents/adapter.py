@@ -167,7 +167,7 @@ class SkrlEnvAdapter:
             raise ValueError(
                 f"obs_scales names unknown entries {unknown}; entries: {self.layout.keys}"
             )
-        self._seed = seed
+        self.seed = seed
         self._observations: torch.Tensor | None = None
         self._info: dict[str, Any] = {}
         self.standardizer: RunningStandardizer | None = None
@@ -215,7 +215,7 @@ class SkrlEnvAdapter:
     def reset(self) -> tuple[torch.Tensor, dict[str, Any]]:
         """Reset every env on the first call; later calls return the latest observations."""
         if self._observations is None:
-            obs, self._info = self._env.reset(seed=self._seed)
+            obs, self._info = self._env.reset(seed=self.seed)
             self._observations = self.flatten(obs, update=self.update_stats)
         return self._observations, self._info
 

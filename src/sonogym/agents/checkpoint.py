@@ -3,8 +3,8 @@ trained networks, and act with them in an env as a ``Policy`` (``rl_policy``).""
 
 from __future__ import annotations
 
-import json
 import re
+import warnings
 from pathlib import Path
 
 import gymnasium as gym
@@ -41,17 +41,39 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
     return state
 
 
-def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
-    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
+def checkpoints(out: str | Path) -> list[tuple[int, Path]]:
+    """(env steps, path) of every ``agent_<t>.pt`` in ``out/checkpoints``, newest first."""
     found = []
     for p in (Path(out) / "checkpoints").glob("agent_*.pt"):
         m = _CKPT.search(p.name)
         if m:
             found.append((int(m.group(1)), p))
-    if not found:
-        return None
-    t, p = max(found)
-    return p, t
+    return sorted(found, reverse=True)
+
+
+def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
+    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
+    found = checkpoints(out)
+    return (found[0][1], found[0][0]) if found else None
+
+
+def latest_readable_checkpoint(out: str | Path, warn=None) -> tuple[Path, int] | None:
+    """(path, env steps) of the newest checkpoint that reads (``read_checkpoint``), or None;
+    each unreadable newer one (a save killed half-way by an older version, a corrupt file) is
+    skipped with a warning naming it (``warn``: a callable taking the message; default
+    ``warnings.warn``)."""
+    for t, p in checkpoints(out):
+        try:
+            read_checkpoint(p)
+        except (CheckpointError, OSError) as e:
+            msg = f"skipping unreadable checkpoint: {e}"
+            if warn is None:
+                warnings.warn(msg, stacklevel=2)
+            else:
+                warn(msg)
+            continue
+        return p, t
+    return None
 
 
 def load_policy(
@@ -59,19 +81,17 @@ def load_policy(
 ) -> tuple[SharedActorCritic, dict]:
     """(policy-and-value module in eval mode, the run's resolved config) from ``run``.
 
-    ``checkpoint``: a path, or None for the newest ``checkpoints/agent_<t>.pt``. The module
+    ``checkpoint``: a path, or None for the newest readable ``checkpoints/agent_<t>.pt`` (an
+    unreadable newer one is skipped with a warning naming it). The module
     takes the adapter's flat observations (``config["obs_layout"]``); its deterministic action
     is ``module.act({"observations": x}, role="policy")[1]["mean_actions"]``.
     """
     run = Path(run)
-    cfg_path = run / "config.json"
-    if not cfg_path.exists():
-        raise FileNotFoundError(f"{cfg_path} not found: is {run} a `sonogym train` run directory?")
-    cfg = json.loads(cfg_path.read_text())
+    cfg = run_config(run)
     if checkpoint is None:
-        found = latest_checkpoint(run)
+        found = latest_readable_checkpoint(run)
         if found is None:
-            raise FileNotFoundError(f"no checkpoints/agent_<t>.pt in {run}")
+            raise FileNotFoundError(f"no readable checkpoints/agent_<t>.pt in {run}")
         checkpoint = found[0]
     layout = ObsLayout(
         tuple(cfg["obs_layout"]["keys"]),
@@ -94,13 +114,30 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
     if cfg["algo"] != "ppo-sf":
         raise ValueError(f"{run} is a {cfg['algo']} run; only ppo-sf runs have a cost critic")
     if checkpoint is None:
-        checkpoint = latest_checkpoint(run)[0]
+        checkpoint = latest_readable_checkpoint(run)[0]
     critic = CostCritic(
         cfg["task"], policy.encoder.layout, policy.action_space, device, run_net(cfg)
     )
     critic.load_state_dict(read_checkpoint(checkpoint, device)["cost_critic"])
     critic.eval()
     return critic, float(cfg["task_config"]["cost_threshold"])
+
+
+#: Keys every run's ``config.json`` has (what evaluation reads).
+RUN_CONFIG_KEYS = ("task", "algo", "seed", "obs_layout", "action_space", "task_config")
+
+
+def run_config(run: str | Path) -> dict:
+    """A run's ``config.json``, with a clear error if it is missing, malformed or incomplete."""
+    from sonogym.runs import read_json
+
+    cfg = read_json(Path(run) / "config.json", "`sonogym train` run folder", RUN_CONFIG_KEYS)
+    missing = [
+        k for k in ("env_kwargs", "obs_downsample", "obs_scales") if k not in cfg["task_config"]
+    ]
+    if missing:
+        raise ValueError(f"{Path(run) / 'config.json'}: task_config lacks {missing}")
+    return cfg
 
 
 def run_net(cfg: dict) -> str:
@@ -140,7 +177,7 @@ def rl_policy(
         standardize_vectors=tc.get("standardize_vectors", False),
     )  # fmt: skip
     if adapter.standardizer is not None:
-        path = checkpoint or latest_checkpoint(run)[0]
+        path = checkpoint or latest_readable_checkpoint(run)[0]
         adapter.standardizer.load_state_dict(read_checkpoint(path, device)["obs_standardizer"])
     if cfg["algo"] == "ppo-sf":
         critic, threshold = load_cost_critic(run, checkpoint, device)

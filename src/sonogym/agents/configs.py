@@ -89,6 +89,211 @@ def task_config(task: str, **overrides) -> TaskRLConfig:
     return dataclasses.replace(base, **overrides)
 
 
+#: Options a resumed run may change: how long it runs and where (the rest defines the run).
+RESUMABLE_OPTIONS = ("steps", "device", "threads")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The one input of a training run: what ``sonogym train`` resolves and ``config.json``
+    stores and loads back (``to_dict`` / ``from_dict``).
+
+    ``rl`` holds the task's resolved settings (hyperparameters, envs, network, downsampling,
+    env options, steps as ``rl.timesteps``); the rest is the run's own."""
+
+    task: str
+    algo: str
+    rl: TaskRLConfig
+    seed: int = 0
+    preset: str = "paper"  # the device preset the settings resolved from ("cpu", "paper")
+    threads: int | None = None  # torch CPU threads (None: torch's default)
+    device: str = "cpu"
+    checkpoint_interval: int | None = None  # env steps per env; None: ~10 checkpoints
+    write_interval: int | None = None  # env steps per env; None: once per update
+
+    def __post_init__(self) -> None:
+        check_algo(self.task, self.algo)
+        for name in ("num_envs", "timesteps", "obs_downsample"):
+            v = getattr(self.rl, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                flag = {"num_envs": "envs", "timesteps": "steps"}.get(name, name)
+                raise ValueError(f"{flag} must be a positive integer, got {v!r}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be >= 1, got {self.threads}")
+        for name in ("checkpoint_interval", "write_interval"):
+            v = getattr(self, name)
+            if v is not None and v < 1:
+                raise ValueError(f"{name} must be >= 1 env step, got {v}")
+
+    @property
+    def steps(self) -> int:
+        """Env steps per env in total (resumed ones included)."""
+        return self.rl.timesteps
+
+    @property
+    def params(self) -> PPOParams | A2CParams:
+        return self.rl.params(self.algo)
+
+    def intervals(self) -> tuple[int, int]:
+        """(checkpoint, TensorBoard write) intervals in env steps: the given ones, else about
+        ten checkpoints at update boundaries and one write per update."""
+        r = self.params.rollouts
+        ckpt = self.checkpoint_interval or r * max(1, round(self.steps / 10 / r))
+        return ckpt, self.write_interval or r
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "task": self.task,
+            "algo": self.algo,
+            "seed": self.seed,
+            "preset": self.preset,
+            "threads": self.threads,
+            "device": self.device,
+            "num_envs": self.rl.num_envs,
+            "steps": self.steps,
+            "env_id": self.rl.env_id,
+            "checkpoint_interval": self.checkpoint_interval,
+            "write_interval": self.write_interval,
+            "task_config": to_jsonable(self.rl),
+            "algo_params": to_jsonable(self.params),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        """Back from ``to_dict`` (a run's ``config.json``)."""
+        tc = dict(d["task_config"])
+        tc["ppo"] = PPOParams(**tc["ppo"])
+        tc["a2c"] = A2CParams(**tc["a2c"])
+        tc["pid_gains"] = tuple(tc["pid_gains"])
+        tc["env_kwargs"] = _tuples(tc.get("env_kwargs", {}))
+        names = {f.name for f in dataclasses.fields(TaskRLConfig)}
+        rl = TaskRLConfig(**{k: v for k, v in tc.items() if k in names})
+        return cls(
+            task=d["task"],
+            algo=d["algo"],
+            rl=rl,
+            seed=d.get("seed", 0),
+            preset=d.get("preset", "paper"),
+            threads=d.get("threads"),
+            device=d.get("device", "cpu"),
+            checkpoint_interval=d.get("checkpoint_interval"),
+            write_interval=d.get("write_interval"),
+        )
+
+
+def resolve_train_config(
+    task: str,
+    algo: str,
+    *,
+    preset: str = "auto",
+    device: str = "cpu",
+    seed: int | None = None,
+    envs: int | None = None,
+    steps: int | None = None,
+    net: str | None = None,
+    obs_downsample: int | None = None,
+    threads: int | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    checkpoint_interval: int | None = None,
+    write_interval: int | None = None,
+) -> TrainConfig:
+    """A run's settings in one order: the task's registry defaults, then the device preset
+    (``sonogym.agents.presets``: envs, network size, image downsampling, threads), then the
+    explicit options (None: not given)."""
+    from sonogym.agents.presets import resolve_preset
+
+    check_algo(task, algo)
+    p = resolve_preset(preset, device)
+    defaults = get_task(task).training
+    rl = task_config(
+        task,
+        num_envs=p.num_envs,
+        net=p.net,
+        obs_downsample=p.obs_downsample(defaults.image_height),
+    )
+    given = {"num_envs": envs, "timesteps": steps, "net": net, "obs_downsample": obs_downsample}
+    rl = dataclasses.replace(rl, **{k: v for k, v in given.items() if v is not None})
+    rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, **_tuples(env_kwargs or {})})
+    return TrainConfig(
+        task=task,
+        algo=algo,
+        rl=rl,
+        seed=0 if seed is None else seed,
+        preset=p.name,
+        threads=p.threads if threads is None else threads,
+        device=str(device),
+        checkpoint_interval=checkpoint_interval,
+        write_interval=write_interval,
+    )
+
+
+def resume_config(saved: TrainConfig, **explicit: Any) -> TrainConfig:
+    """The saved config of a run being resumed, with the explicit options (None: not given)
+    of ``resolve_train_config`` applied: ``steps``, ``device`` and ``threads`` may change;
+    any other option that differs from the saved run is refused, naming it."""
+    given = {k: v for k, v in explicit.items() if v is not None}
+    current = {
+        "task": saved.task,
+        "algo": saved.algo,
+        "seed": saved.seed,
+        "envs": saved.rl.num_envs,
+        "net": saved.rl.net,
+        "obs_downsample": saved.rl.obs_downsample,
+        "preset": saved.preset,
+        "checkpoint_interval": saved.checkpoint_interval,
+        "write_interval": saved.write_interval,
+    }
+    conflicts = []
+    for k, v in given.items():
+        if k in RESUMABLE_OPTIONS:
+            continue
+        if k == "env_kwargs":
+            for ek, ev in _tuples(v).items():
+                old = saved.rl.env_kwargs.get(ek, _env_default(saved.task, ek))
+                if _tuples(ev) != old:
+                    conflicts.append(f"{ek} {ev!r} (run: {old!r})")
+        elif k == "preset":
+            if v not in ("auto", saved.preset):
+                conflicts.append(f"preset {v!r} (run: {saved.preset!r})")
+        elif k in current and v != current[k]:
+            conflicts.append(f"{k} {v!r} (run: {current[k]!r})")
+        elif k not in current:
+            raise TypeError(f"unknown training option {k!r}")
+    if conflicts:
+        raise ValueError(
+            "cannot resume with options that differ from the run's config.json: "
+            + "; ".join(conflicts)
+            + ". Drop them to continue the run as it was, or start a new run (another --out)"
+        )
+    rl = saved.rl
+    if "steps" in given:
+        rl = dataclasses.replace(rl, timesteps=given["steps"])
+    return dataclasses.replace(
+        saved,
+        rl=rl,
+        device=str(given.get("device", saved.device)),
+        threads=given.get("threads", saved.threads),
+    )
+
+
+def _env_default(task: str, key: str) -> Any:
+    """The env config's default for option ``key`` (what a run that did not set it used)."""
+    cls = get_task(task).config_cls
+    for f in dataclasses.fields(cls):
+        if f.name == key:
+            return _tuples(f.default) if f.default is not dataclasses.MISSING else None
+    raise ValueError(f"unknown {task} env option {key!r}")
+
+
+def _tuples(x: Any) -> Any:
+    """Lists (as JSON gives them) to tuples, recursively, as the configs hold them."""
+    if isinstance(x, list | tuple):
+        return tuple(_tuples(v) for v in x)
+    if isinstance(x, dict):
+        return {k: _tuples(v) for k, v in x.items()}
+    return x
+
+
 class RewardScale:
     """skrl ``rewards_shaper``: multiply rewards by a constant (logged returns stay unscaled)."""
 

@@ -1,29 +1,36 @@
-"""Train a skrl agent on a SonoGym task: ``train(task, algo, ...)`` with algo ``ppo``, ``a2c``,
-``ppo-sf`` or ``ppo-lag`` (the task's registry entry lists what it supports).
+"""Train a skrl agent on a SonoGym task: ``ppo``, ``a2c``, ``ppo-sf`` or ``ppo-lag`` (the task's
+registry entry lists what it supports).
 
+``train(task, algo, ...)`` resolves a ``TrainConfig`` (task defaults, device preset, explicit
+options) or, with ``resume=True``, loads the run's own; ``run_training(cfg, out)`` runs it.
 Writes into ``out/``:
 
-* ``config.json``: the fully resolved run config (task config, algorithm parameters, env
-  options, versions), written before training starts;
+* ``config.json``: the resolved run config (``TrainConfig.to_dict`` plus the observation
+  layout, action box, versions and the step a resumed run started from), written atomically;
 * TensorBoard event files (skrl's writer: losses, rewards, learning rate; plus the tasks'
   episode metrics under ``Episode / <metric>``);
-* ``checkpoints/agent_<t>.pt``: skrl agent checkpoints (policy = value module, optimizer,
-  value standardiser) after t env steps per env; ``agent_0.pt`` holds the initial weights, the
-  newest one the final policy (skrl also keeps ``best_agent.pt``, best mean return).
+* ``checkpoints/agent_<t>.pt``: agent checkpoints (policy = value module, optimiser, value
+  standardiser, observation standardiser) after t env steps per env, written atomically
+  (temporary file + rename); ``agent_0.pt`` holds the initial weights, the newest one the
+  final policy. They load with ``weights_only=True`` (``checkpoint.read_checkpoint``).
 
 The loop is skrl's sequential trainer loop written out, for one reason: with SAME_STEP
 autoreset the observation after a truncation is the next episode's first one, so the loop hands
 skrl the true final observation (``info["final_obs"]``) as ``next_observations`` for
 time-limit bootstrapping, and the reset one as the next step's input.
 
-``resume=True`` continues from the newest checkpoint in ``out/checkpoints`` (weights,
-optimizer, standardiser; the envs restart from a fresh reset and the rollout memory is empty).
+Output folders follow ``sonogym.runs.prepare_output``: an existing run is continued only with
+``resume`` and replaced only with ``force``. ``resume`` reloads ``config.json`` before touching
+anything (an explicit option that differs is refused, naming it; ``steps``, ``device`` and
+``threads`` may change) and continues from the newest readable checkpoint (weights, optimiser,
+standardisers; the envs restart from a fresh reset and the rollout memory is empty). Ctrl-C
+saves a checkpoint at the last completed step and says how to resume.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,11 +38,18 @@ from typing import Any
 import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
-from sonogym.agents.checkpoint import latest_checkpoint, read_checkpoint
-from sonogym.agents.configs import TaskRLConfig, build_agent, task_config
-from sonogym.agents.configs import to_jsonable as _jsonable
+from sonogym.agents.checkpoint import latest_readable_checkpoint, read_checkpoint
+from sonogym.agents.configs import (
+    TaskRLConfig,
+    TrainConfig,
+    build_agent,
+    resolve_train_config,
+    resume_config,
+    to_jsonable,
+)
 from sonogym.agents.networks import make_models
-from sonogym.envs.registry import check_algo, make_vec
+from sonogym.envs.registry import make_vec
+from sonogym.runs import atomic_torch_save, atomic_write_json, prepare_output, read_json
 
 
 @dataclass(frozen=True)
@@ -43,6 +57,10 @@ class TrainResult:
     out: Path  # run directory
     checkpoint: Path  # the final checkpoint
     steps: int  # env steps per env done in total (including resumed ones)
+
+
+class TrainingInterrupted(Exception):
+    """Ctrl-C during training: a checkpoint was saved; the message says how to resume."""
 
 
 def make_env(cfg: TaskRLConfig, num_envs: int, device: str | torch.device):
@@ -56,7 +74,7 @@ def train(
     algo: str,
     envs: int | None = None,
     steps: int | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     out: str | Path | None = None,
     *,
     patients: tuple | None = None,
@@ -64,168 +82,209 @@ def train(
     obs_downsample: int | None = None,
     net: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
-    device: str = "cpu",
+    preset: str | None = None,
+    threads: int | None = None,
+    device: str | None = None,
     resume: bool = False,
+    force: bool = False,
     checkpoint_interval: int | None = None,
     write_interval: int | None = None,
     progress: bool = True,
+    log: Callable[[str], None] | None = None,
 ) -> TrainResult:
-    """Train ``algo`` on ``task`` for ``steps`` env steps per env (default: the paper's).
+    """Train ``algo`` on ``task`` (options None: from the task's defaults and the preset).
 
     Args:
-        envs: parallel envs (default 128, paper).
-        steps: env steps per env in total, resumed ones included.
-        seed: seeds torch and the envs' first reset.
+        envs: parallel envs; steps: env steps per env in total, resumed ones included.
+        seed: seeds torch and the envs' first reset (default 0).
         out: run directory (default ``runs/<task>-<algo>-s<seed>``).
-        patients, simulator, obs_downsample, env_kwargs: override the task config's env options.
-        net: conv trunk size, "paper" (default) or "small" (the task's registry ``trunks``).
-        resume: continue from the newest checkpoint in ``out``; without it an ``out`` that holds
-            checkpoints is refused.
+        patients, simulator, env_kwargs: env options (``make_vec`` keywords).
+        obs_downsample, net, threads: override the preset's.
+        preset: "auto" (default), "cpu" or "paper" (``sonogym.agents.presets``).
+        resume: continue the run in ``out`` (its ``config.json``); force: replace it.
         checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
             update boundaries; TensorBoard once per update).
-        progress: show a tqdm bar with the ETA.
+        progress: show a tqdm bar with the ETA; log: where the start summary goes (default:
+            printed when ``progress``).
     """
-    from skrl.trainers.torch import SequentialTrainerCfg
-    from tqdm import tqdm
-
-    check_algo(task, algo)
-    base = task_config(task)
-    kw = dict(base.env_kwargs)
-    kw.update(env_kwargs or {})
+    kw = dict(env_kwargs or {})
     if patients is not None:
         kw["patients"] = tuple(patients)
     if simulator is not None:
         kw["simulator"] = simulator
-    cfg = dataclasses.replace(
-        base,
-        num_envs=envs or base.num_envs,
-        timesteps=steps or base.timesteps,
-        obs_downsample=obs_downsample or base.obs_downsample,
-        net=net or base.net,
-        env_kwargs=kw,
-    )
-    params = cfg.params(algo)
-    steps = cfg.timesteps
-    out = Path(out or f"runs/{task}-{algo}-s{seed}")
-    found = latest_checkpoint(out)
-    if found and not resume:
-        raise FileExistsError(
-            f"{out} already holds checkpoints ({found[0].name}); pass resume=True (--resume) "
-            "to continue that run, or choose another output directory"
-        )
-    if resume and (out / "config.json").exists():
-        old = json.loads((out / "config.json").read_text())
-        if (old["task"], old["algo"]) != (task, algo):
+    explicit = dict(
+        seed=seed, envs=envs, steps=steps, net=net, obs_downsample=obs_downsample,
+        threads=threads, env_kwargs=kw or None, checkpoint_interval=checkpoint_interval,
+        write_interval=write_interval, device=device,
+    )  # fmt: skip
+    out = Path(out or f"runs/{task}-{algo}-s{seed or 0}")
+    if resume:
+        if not (out / "config.json").is_file():
+            raise FileNotFoundError(f"nothing to resume: {out} holds no training run")
+        saved = load_train_config(out)
+        if (saved.task, saved.algo) != (task, algo):
             raise ValueError(
-                f"{out} is a {old['task']}/{old['algo']} run; cannot resume it as {task}/{algo}"
+                f"{out} is a {saved.task}/{saved.algo} run; cannot resume it as {task}/{algo}"
             )
-    start = found[1] if (found and resume) else 0
-    if start >= steps:
-        raise ValueError(f"{out} already has {start} steps >= the requested {steps}")
+        cfg = resume_config(saved, preset=preset, **explicit)
+    else:
+        cfg = resolve_train_config(
+            task, algo, preset=preset or "auto", **{**explicit, "device": device or "cpu"}
+        )
+    if log is None:
+        log = print if progress else _quiet
+    return run_training(cfg, out, resume=resume, force=force, progress=progress, log=log)
 
-    torch.manual_seed(seed)
-    env = make_env(cfg, cfg.num_envs, device)
+
+def load_train_config(out: str | Path) -> TrainConfig:
+    """The ``TrainConfig`` a run folder was trained with (its ``config.json``)."""
+    d = read_json(Path(out) / "config.json", "`sonogym train` run folder", ("task", "algo"))
+    try:
+        return TrainConfig.from_dict(d)
+    except (KeyError, TypeError) as e:
+        raise ValueError(
+            f"{Path(out) / 'config.json'} does not describe a training run ({e!r}); restore it "
+            "or start a new run"
+        ) from None
+
+
+def run_training(
+    cfg: TrainConfig,
+    out: str | Path,
+    resume: bool = False,
+    force: bool = False,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> TrainResult:
+    """Run the training ``cfg`` describes into ``out`` (see the module docstring)."""
+    from skrl.trainers.torch import SequentialTrainerCfg
+    from tqdm import tqdm
+
+    out = Path(out)
+    start_ckpt = None
+    if resume:
+        start_ckpt = latest_readable_checkpoint(out, warn=log)
+        if start_ckpt is None:
+            raise FileNotFoundError(f"nothing to resume: no readable checkpoint in {out}")
+        if start_ckpt[1] >= cfg.steps:
+            raise ValueError(
+                f"{out} already has {start_ckpt[1]} steps >= the requested {cfg.steps}; "
+                "pass a larger --steps to train further"
+            )
+    else:
+        prepare_output(out, resume=False, force=force, what="training run")
+    start = start_ckpt[1] if start_ckpt else 0
+    threads_before = torch.get_num_threads()
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    task, algo, steps, device = cfg.task, cfg.algo, cfg.steps, cfg.device
+    torch.manual_seed(cfg.seed)
+    env = make_env(cfg.rl, cfg.rl.num_envs, device)
     adapter = SkrlEnvAdapter(
-        env, cfg.obs_downsample, cfg.obs_scales, seed=seed + start,
-        standardize_vectors=cfg.standardize_vectors,
+        env, cfg.rl.obs_downsample, cfg.rl.obs_scales, seed=cfg.seed + start,
+        standardize_vectors=cfg.rl.standardize_vectors,
     )  # fmt: skip
     adapter.update_stats = True
-    models = make_models(
-        task, adapter.layout, adapter.action_space, device, cfg.net, cfg.init_log_std
-    )
-    if algo == "ppo-sf":
-        from sonogym.agents.safety_filter import CostCritic
-
-        models["cost_critic"] = CostCritic(
-            task, adapter.layout, adapter.action_space, device, cfg.net
-        )
-    elif algo == "ppo-lag":
-        from sonogym.agents.lagrangian import CostValue
-
-        models["cost_value"] = CostValue(
-            task, adapter.layout, adapter.action_space, device, cfg.net
-        )
-    if checkpoint_interval is None:
-        checkpoint_interval = params.rollouts * max(1, round(steps / 10 / params.rollouts))
-    if write_interval is None:
-        write_interval = params.rollouts
+    models = _models(cfg, adapter)
+    ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(
-        cfg,
-        algo,
-        models,
-        adapter.observation_space,
-        adapter.action_space,
-        cfg.num_envs,
-        out,
-        device=device,
-        write_interval=write_interval,
-        checkpoint_interval=checkpoint_interval,
-    )
-    out.mkdir(parents=True, exist_ok=True)
+        cfg.rl, algo, models, adapter.observation_space, adapter.action_space,
+        cfg.rl.num_envs, out, device=device, write_interval=write_interval,
+        checkpoint_interval=0,  # checkpoints are ours: written atomically below
+    )  # fmt: skip
+    if adapter.standardizer is not None:  # saved and restored with the agent
+        agent.checkpoint_modules["obs_standardizer"] = adapter.standardizer
+    agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
+    ckpt_dir = out / "checkpoints"
+    if start_ckpt is not None:
+        load_agent(agent, start_ckpt[0])
     resolved = {
-        "task": task,
-        "algo": algo,
-        "seed": seed,
-        "num_envs": cfg.num_envs,
-        "steps": steps,
-        "device": str(device),
-        "env_id": cfg.env_id,
+        **cfg.to_dict(),
         "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
         "action_space": {
             "low": adapter.action_space.low.tolist(),
             "high": adapter.action_space.high.tolist(),
         },
-        "checkpoint_interval": checkpoint_interval,
+        "checkpoint_interval": ckpt_interval,
         "write_interval": write_interval,
         "resumed_from": start,
-        "task_config": _jsonable(cfg),
-        "algo_params": _jsonable(params),
         "versions": _versions(),
     }
-    (out / "config.json").write_text(json.dumps(_jsonable(resolved), indent=2))
-
-    if adapter.standardizer is not None:  # saved and restored with the agent
-        agent.checkpoint_modules["obs_standardizer"] = adapter.standardizer
-    agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
-    if found and resume:
-        load_agent(agent, found[0])
-    else:
-        (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-        agent.save(str(out / "checkpoints" / "agent_0.pt"))  # the initial weights
+    atomic_write_json(out / "config.json", to_jsonable(resolved))
+    if start_ckpt is None:
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        save_agent(agent, ckpt_dir / "agent_0.pt")  # the initial weights
     agent.enable_training_mode(True)
     obs, _ = adapter.reset()
+    if log is not _quiet:
+        _announce(cfg, out, start, log, agent, adapter, obs)
     bar = tqdm(total=steps, initial=start, disable=not progress, unit="step", desc=f"{task}/{algo}")
-    for t in range(start, steps):
-        agent.pre_interaction(timestep=t, timesteps=steps)
-        with torch.no_grad():
-            actions, _ = agent.act(obs, None, timestep=t, timesteps=steps)
-            next_obs, reward, terminated, truncated, info = adapter.step(actions)
-            agent.record_transition(
-                observations=obs,
-                states=None,
-                actions=actions,
-                rewards=reward,
-                next_observations=adapter.final_observations(info, next_obs),
-                next_states=None,
-                terminated=terminated,
-                truncated=truncated,
-                infos=info,
-                timestep=t,
-                timesteps=steps,
-            )
-            _track_episode_metrics(agent, info)
-        agent.post_interaction(timestep=t, timesteps=steps)
-        obs = next_obs
-        bar.update(1)
+    done = start
+    try:
+        for t in range(start, steps):
+            agent.pre_interaction(timestep=t, timesteps=steps)
+            with torch.no_grad():
+                actions, _ = agent.act(obs, None, timestep=t, timesteps=steps)
+                next_obs, reward, terminated, truncated, info = adapter.step(actions)
+                agent.record_transition(
+                    observations=obs,
+                    states=None,
+                    actions=actions,
+                    rewards=reward,
+                    next_observations=adapter.final_observations(info, next_obs),
+                    next_states=None,
+                    terminated=terminated,
+                    truncated=truncated,
+                    infos=info,
+                    timestep=t,
+                    timesteps=steps,
+                )
+                _track_episode_metrics(agent, info)
+            agent.post_interaction(timestep=t, timesteps=steps)
+            obs = next_obs
+            done = t + 1
+            if done % ckpt_interval == 0 and done < steps:
+                save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+            bar.update(1)
+    except KeyboardInterrupt:
+        bar.close()
+        path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+        msg = (
+            f"interrupted after {done} of {steps} steps; saved {path}. Resume with: sonogym "
+            f"train --task {task} --algo {algo} --out {out} --resume"
+        )
+        log(msg)
+        raise TrainingInterrupted(msg) from None
+    finally:
+        if getattr(agent, "writer", None) is not None:
+            agent.writer.flush()
+        env.close()
+        torch.set_num_threads(threads_before)
     bar.close()
-    final = out / "checkpoints" / f"agent_{steps}.pt"
-    if not final.exists():
-        final.parent.mkdir(parents=True, exist_ok=True)
-        agent.save(str(final))
-    if getattr(agent, "writer", None) is not None:
-        agent.writer.flush()
-    env.close()
+    final = save_agent(agent, ckpt_dir / f"agent_{steps}.pt")
     return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
+    task, net, device = cfg.task, cfg.rl.net, cfg.device
+    layout, space = adapter.layout, adapter.action_space
+    models = make_models(task, layout, space, device, net, cfg.rl.init_log_std)
+    if cfg.algo == "ppo-sf":
+        from sonogym.agents.safety_filter import CostCritic
+
+        models["cost_critic"] = CostCritic(task, layout, space, device, net)
+    elif cfg.algo == "ppo-lag":
+        from sonogym.agents.lagrangian import CostValue
+
+        models["cost_value"] = CostValue(task, layout, space, device, net)
+    return models
+
+
+def save_agent(agent, path: Path) -> Path:
+    """Every checkpointed module's state of ``agent`` to ``path``, atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {name: m.state_dict() for name, m in agent.checkpoint_modules.items()}
+    return atomic_torch_save(state, path)
 
 
 def load_agent(agent, path: Path) -> None:
@@ -239,6 +298,52 @@ def load_agent(agent, path: Path) -> None:
         module.load_state_dict(state[name])
 
 
+def _announce(cfg: TrainConfig, out: Path, start: int, log, agent, adapter, obs) -> None:
+    """The first lines: what will run, an estimate of its time, where the logs go."""
+    rl, p = cfg.rl, cfg.params
+    updates = max(1, (cfg.steps - start) // p.rollouts)
+    log(
+        f"{cfg.task}/{cfg.algo} seed {cfg.seed}: {cfg.steps - start} steps x {rl.num_envs} envs "
+        f"({updates} updates of {p.rollouts} steps) from step {start}; preset {cfg.preset}: "
+        f"net {rl.net}, obs_downsample {rl.obs_downsample}, threads {torch.get_num_threads()}, "
+        f"device {cfg.device}"
+    )
+    step_s, update_s = estimate_costs(cfg, agent, adapter, obs)
+    per_update = p.rollouts * step_s + update_s
+    log(
+        f"estimated {per_update:.1f} s per update ({p.rollouts * step_s:.1f} s rollout, "
+        f"{update_s:.1f} s learning), {updates * per_update / 60:.1f} min in all"
+    )
+    log(f"TensorBoard: tensorboard --logdir {out}; checkpoints in {out / 'checkpoints'}")
+
+
+def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]:
+    """(seconds per env step with the policy acting, seconds of one update's learning), from a
+    short measurement: 3 acting steps (after one warm-up) and one forward + backward pass of
+    the policy/value on a mini-batch, times the update's mini-batch passes. The env is reset
+    to the run's seed afterwards (same first episode as without the estimate)."""
+    p = cfg.params
+    model = agent.policy
+    with torch.random.fork_rng(devices=[]):  # the measurement draws no training randomness
+        with torch.no_grad():
+            for k in range(4):  # one warm-up step, then three timed
+                if k == 1:
+                    t0 = time.perf_counter()
+                a, _ = agent.act(obs, None, timestep=0, timesteps=cfg.steps)
+                adapter.unwrapped.step(a)
+            step_s = (time.perf_counter() - t0) / 3
+        batch = max(1, p.rollouts * cfg.rl.num_envs // p.mini_batches)
+        x = obs[:1].expand(batch, -1).clone()
+        t0 = time.perf_counter()
+        mean, _ = model.act({"observations": x}, role="policy")
+        value, _ = model.act({"observations": x}, role="value")
+        (mean.sum() + value.sum()).backward()
+        model.zero_grad(set_to_none=True)
+        update_s = (time.perf_counter() - t0) * getattr(p, "learning_epochs", 1) * p.mini_batches
+    adapter.unwrapped.reset(seed=adapter.seed)  # the run starts as if unmeasured
+    return step_s, update_s
+
+
 def _track_episode_metrics(agent, info: dict[str, Any]) -> None:
     metrics = info.get("final_info")
     if not metrics:
@@ -247,6 +352,10 @@ def _track_episode_metrics(agent, info: dict[str, Any]) -> None:
         if k == "env_ids" or not isinstance(v, torch.Tensor) or v.numel() == 0:
             continue
         agent.track_data(f"Episode / {k}", v.float().mean().item())
+
+
+def _quiet(msg: str) -> None:
+    return None
 
 
 def _versions() -> dict[str, str]:

@@ -280,6 +280,7 @@ SPEC = TaskSpec(
         a2c=A2CParams(rollouts=16, mini_batches=32),
         timesteps=500_000,
         trunks={"paper": CONV4, "small": SMALL_CONV4},
+        image_height=200,
     ),
     features=(
         Feature(

@@ -144,6 +144,7 @@ class TrainingDefaults:
     timesteps: int  # env steps per env (reference trainer timesteps)
     trunks: dict[str, ConvSpec]
     num_envs: int = 128  # paper
+    image_height: int | None = None  # px of the image observation (presets pool it), None: none
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # log of sigma in action units

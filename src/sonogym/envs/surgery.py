@@ -557,6 +557,7 @@ SPEC = TaskSpec(
         a2c=A2CParams(rollouts=64, mini_batches=4),
         timesteps=200_000,
         trunks={"paper": CONV3, "small": SMALL_CONV3},
+        image_height=50,
         # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
         # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
         init_log_std=math.log(0.05),

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sonogym.runs import atomic_write_text
+
 DEFAULT_METRIC = "Episode / return"
 #: Plot labels of the algorithms (paper's names).
 ALGO_LABELS = {
@@ -290,13 +292,13 @@ def plot_curves(
             png = out / f"{name}.png"
             fig.savefig(png, dpi=100, metadata={"Software": None})
             plt.close(fig)
-            (out / f"{name}.csv").write_text(_curves_csv(curves, ref))
+            atomic_write_text(out / f"{name}.csv", _curves_csv(curves, ref))
             written.append(png)
             md.append(f"## {task}: {metric}\n\n![{name}]({name}.png)\n\nruns: {source}")
             if ref is not None:
                 md.append(f"{expert_label(task)} reference {ref[0]:.4g} from: {'; '.join(ref[1])}")
             md.append(f"numbers: [{name}.csv]({name}.csv)")
-    (out / f"{stem}.md").write_text("\n\n".join(md).rstrip() + "\n")
+    atomic_write_text(out / f"{stem}.md", "\n\n".join(md).rstrip() + "\n")
     return written
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from sonogym.envs.policy import ExpertPolicy
 from sonogym.envs.registry import get_task, make_vec, task_names
 from sonogym.envs.rollout import rollout
+from sonogym.runs import atomic_write_text
 
 
 def run_demo(
@@ -28,15 +29,17 @@ def run_demo(
     seed: int = 0,
     tasks: tuple[str, ...] | None = None,
     log: Callable[[str], None] = print,
+    patients: tuple | None = None,
 ) -> dict:
-    """Run the demo and return the metrics table (also written to ``out``)."""
+    """Run the demo and return the metrics table (also written to ``out``). ``patients``:
+    phantom seeds and/or TotalSegmentator subject folders (default: the tasks' phantom 0)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in tasks or task_names():
         task = get_task(name)
         t0 = time.perf_counter()
-        env = make_vec(name, num_envs)
+        env = make_vec(name, num_envs, **({"patients": patients} if patients else {}))
         frames, paths = [], []
         sheet = []
         final = None
@@ -61,8 +64,8 @@ def run_demo(
         _write_sheet(out / f"{name}_frames.png", sheet, name)
         _write_video(out / f"{name}.mp4", frames)
         log(f"{name}: {', '.join(f'{k} {m:.2f} ± {s:.2f}' for k, (m, s) in metrics.items())}")
-    (out / "metrics.json").write_text(json.dumps(results, indent=1))
-    (out / "metrics.md").write_text(_markdown(results))
+    atomic_write_text(out / "metrics.json", json.dumps(results, indent=1))
+    atomic_write_text(out / "metrics.md", _markdown(results))
     log(f"wrote {out}/metrics.md, metrics.json, *_frames.png, *.mp4")
     return results
 

@@ -19,6 +19,7 @@ imitation-learning run can join the report by writing the same file under its ow
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ import torch
 
 from sonogym.envs.registry import get_task
 from sonogym.envs.rollout import rollout
+from sonogym.runs import atomic_write_bytes
 
 FORMAT = 1
 
@@ -89,8 +91,9 @@ def save_log(
             arrays[f"{c}/{k}"] = np.asarray(v, np.float32)
     for c, t in tracks.items():
         arrays[f"{c}/track"] = np.asarray(t, np.float32)
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
     return path
 
 

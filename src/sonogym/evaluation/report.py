@@ -44,6 +44,7 @@ from sonogym.evaluation.curves import (
 )
 from sonogym.evaluation.episodes import EpisodeLog, run_logs
 from sonogym.evaluation.protocols import simulator_group
+from sonogym.runs import atomic_write_text
 
 RETURN = Metric("return", "return", "", better="higher")
 
@@ -385,14 +386,14 @@ def build_report(
     md.append("Runs: " + ", ".join(names) + "\n")
     if not logs:
         md.append("No episode logs: run `sonogym eval --run <run> --protocol idt` first.\n")
-    (out / "metrics.csv").write_text(metrics_csv(cells))
+    atomic_write_text(out / "metrics.csv", metrics_csv(cells))
     md.append("Every number: [metrics.csv](metrics.csv) (mean, std over episodes, n, runs, "
               "seeds).\n")  # fmt: skip
 
     if task == "surgery":
         t_md, t_csv, used = table1(cells)
-        (out / "table1.md").write_text(t_md)
-        (out / "table1.csv").write_text(t_csv)
+        atomic_write_text(out / "table1.md", t_md)
+        atomic_write_text(out / "table1.csv", t_csv)
         md += [
             "## Table 1: surgery (mean ± std over episodes)\n",
             "ODT = held-out patient (`odt-patient`) for MB rows, held-out learned net "
@@ -432,5 +433,5 @@ def build_report(
             md.append(f"## Learning curves\n\n![{p.stem}]({p.name})\n")
         if pngs:
             md.append("Runs and seeds: [curves.md](curves.md)\n")
-    (out / "report.md").write_text("\n".join(md))
+    atomic_write_text(out / "report.md", "\n".join(md))
     return out / "report.md"

@@ -24,6 +24,8 @@ from typing import Any
 
 import torch
 
+from sonogym.runs import atomic_write_text
+
 CONTROLLERS = ("policy", "expert", "random")
 
 
@@ -46,8 +48,12 @@ def evaluate_run(
     protocol: str | None = None,
     held_out_patients: int = 1,
     plot: bool = True,
+    checkpoint: str | Path | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
+
+    ``checkpoint``: the checkpoint to evaluate (default: the run's newest readable one; an
+    unreadable newer one is skipped with a warning naming it).
 
     ``protocol``: ``idt`` (default), ``odt-sim`` or ``odt-patient``
     (``sonogym.evaluation.protocols``): its test env options override the run's own, and its
@@ -58,7 +64,7 @@ def evaluate_run(
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
     ``trajectories-<protocol>.png``.
     """
-    from sonogym.agents.checkpoint import latest_checkpoint, load_policy
+    from sonogym.agents.checkpoint import latest_readable_checkpoint, load_policy
     from sonogym.envs.registry import get_task
     from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
@@ -68,7 +74,10 @@ def evaluate_run(
     if unknown:
         raise ValueError(f"unknown controllers {unknown}; choose from {list(CONTROLLERS)}")
     run = Path(run)
-    _, cfg = load_policy(run, device=device)  # checks the run folder early
+    if checkpoint is None:
+        found = latest_readable_checkpoint(run) if (run / "config.json").exists() else None
+        checkpoint = found[0] if found else None
+    _, cfg = load_policy(run, checkpoint, device=device)  # checks the run folder early
     proto = get_protocol(protocol or "idt", held_out_patients)
     trials = proto.trials if trials is None else trials
     seed = proto.seed if seed is None else seed
@@ -84,7 +93,9 @@ def evaluate_run(
     overrides.update(env_overrides or {})
     name = protocol or ("custom" if env_overrides else "idt")
 
-    episodes = run_controllers(run, trials, envs, seed, device, overrides, controllers)
+    episodes = run_controllers(
+        run, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint
+    )
     results = {
         c: {
             k: (float(t.mean()), float(t.std()) if trials > 1 else 0.0)
@@ -102,7 +113,7 @@ def evaluate_run(
         "eval_seed": seed,
         "trials": trials,
         "controllers": list(episodes),
-        "checkpoint": latest_checkpoint(run)[0].name,
+        "checkpoint": Path(checkpoint).name,
         "train_env": cfg["task_config"]["env_kwargs"],
         "test_env": _jsonable({**train_env, **overrides}),
         "track_columns": list(track.columns),
@@ -125,18 +136,21 @@ def evaluate_run(
         "env_overrides": _jsonable(overrides),
         "results": results,
     }
-    (run / f"{stem}.json").write_text(json.dumps(table, indent=1))
-    (run / f"{stem}.md").write_text(format_table(results))
+    atomic_write_text(run / f"{stem}.json", json.dumps(table, indent=1))
+    atomic_write_text(run / f"{stem}.md", format_table(results))
     return results
 
 
-def controller_policy(name: str, env, task: str, run: str | Path, seed: int, device: str = "cpu"):
-    """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy, the task's
-    expert (or heuristic), or uniform random actions from ``seed``."""
+def controller_policy(
+    name: str, env, task: str, run: str | Path, seed: int, device: str = "cpu", checkpoint=None
+):
+    """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy (its
+    ``checkpoint``, default the newest readable), the task's expert (or heuristic), or uniform
+    random actions from ``seed``."""
     if name == "policy":
         from sonogym.agents.checkpoint import rl_policy
 
-        return rl_policy(run, env, device=device)
+        return rl_policy(run, env, checkpoint, device=device)
     if name == "expert":
         from sonogym.envs.policy import ExpertPolicy
         from sonogym.envs.registry import get_task
@@ -157,6 +171,7 @@ def run_controllers(
     device: str = "cpu",
     env_overrides: dict[str, Any] | None = None,
     controllers: tuple[str, ...] = CONTROLLERS,
+    checkpoint: str | Path | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run ``trials`` episodes per controller in the run's env (with ``env_overrides``), all
     from the same seeded starts: {controller: {"metrics": {metric: (trials,) array},
@@ -166,13 +181,17 @@ def run_controllers(
     from sonogym.agents.train import make_env
     from sonogym.evaluation.episodes import run_episodes
 
-    _, cfg = load_policy(run, device=device)  # checks the run folder early
+    _, cfg = load_policy(run, checkpoint, device=device)  # checks the run folder early
     task = cfg["task"]
     env_kwargs = {**_tuples(cfg["task_config"]["env_kwargs"]), **(env_overrides or {})}
     env = make_env(task_config(task, env_kwargs=env_kwargs), min(trials, envs or 16), device)
     out = {
         name: run_episodes(
-            env, controller_policy(name, env, task, run, seed, device), trials, seed, task
+            env,
+            controller_policy(name, env, task, run, seed, device, checkpoint),
+            trials,
+            seed,
+            task,
         )
         for name in controllers
     }

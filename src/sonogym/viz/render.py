@@ -49,11 +49,13 @@ def parse_pose(text: str) -> Pose:
 def default_poses(patient: Patient, level: str = "L4") -> list[Pose]:
     """Transverse and sagittal poses above a vertebra's body centre (or the middle of the
     back's surface if the vertebra is missing)."""
+    from sonogym.anatomy import LandmarkError
+
     try:
         c = patient.landmarks.vertebra(level).centre
         x, z = float(c[0]), float(c[2])
-    except Exception:  # no such vertebra: the middle of the back
-        (x0, x1), (z0, z1) = patient.skin.x_range, patient.skin.z_range
+    except LandmarkError:  # no such vertebra (or none at all): the middle of the back
+        (x0, x1), (z0, z1) = patient.skin.x_range(), patient.skin.z_range()
         x, z = (x0 + x1) / 2, (z0 + z1) / 2
     return [(x, z, math.pi, 0.0), (x, z, math.pi / 2, 0.0)]
 

@@ -1,0 +1,150 @@
+"""No lost runs, no code from files: atomic checkpoints, unreadable ones skipped by name,
+resume that refuses changed options before touching anything, Ctrl-C that saves, and
+checkpoints that never unpickle code."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sonogym.agents.checkpoint import CheckpointError, read_checkpoint
+from sonogym.agents.train import TrainingInterrupted, train
+from sonogym.cli import app
+from sonogym.evaluation.rl_eval import evaluate_run
+
+FAST = dict(phantom_spacing=0.002, episode_length=10)
+
+
+def _tiny(out, steps=32, **kw):
+    torch.set_num_threads(1)
+    args = dict(envs=2, steps=steps, out=out, patients=(0,), obs_downsample=4, progress=False)
+    args["env_kwargs"] = dict(FAST)
+    return train("navigation", "ppo", **{**args, **kw})
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("safety") / "nav"
+    _tiny(out)
+    return out
+
+
+def test_a_torn_newest_checkpoint_is_skipped_by_name_and_one_can_be_picked(run, tmp_path):
+    import shutil
+
+    r = tmp_path / "r"
+    shutil.copytree(run, r)
+    (r / "checkpoints" / "agent_999.pt").write_bytes(b"")  # a save killed half-way
+    with pytest.warns(UserWarning, match="agent_999.pt"):
+        res = evaluate_run(r, trials=2, envs=2, controllers=("policy",), plot=False)
+    assert json.loads((r / "eval.json").read_text())["results"] == {
+        "policy": {k: list(v) for k, v in res["policy"].items()}
+    }
+    # an explicit checkpoint is used as given
+    evaluate_run(r, trials=2, envs=2, controllers=("policy",), plot=False,
+                 checkpoint=r / "checkpoints" / "agent_0.pt")  # fmt: skip
+    torn = str(r / "checkpoints" / "agent_999.pt")
+    args = ["eval", "--run", str(r), "--trials", "2", "--envs", "2", "--checkpoint", torn]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code != 0 and "agent_999.pt" in res.output
+
+
+def test_resume_refuses_changed_options_before_touching_the_run(run, tmp_path):
+    import shutil
+
+    r = tmp_path / "r"
+    shutil.copytree(run, r)
+    before = (r / "config.json").read_bytes()
+    for bad, name in ((dict(net="paper"), "net"), (dict(obs_downsample=2), "obs_downsample"),
+                      (dict(envs=4), "envs"), (dict(patients=(1,)), "patients")):  # fmt: skip
+        with pytest.raises(ValueError, match=name):
+            _tiny(r, steps=64, resume=True, **bad)
+        assert (r / "config.json").read_bytes() == before  # untouched: the run still evaluates
+    # the same options, or only longer: continues
+    res = _tiny(r, steps=64, resume=True)
+    assert res.steps == 64 and json.loads((r / "config.json").read_text())["resumed_from"] == 32
+
+
+def test_existing_run_needs_resume_or_force(run, tmp_path):
+    import shutil
+
+    r = tmp_path / "r"
+    shutil.copytree(run, r)
+    with pytest.raises(FileExistsError, match="--resume.*--force"):
+        _tiny(r)
+    _tiny(r, steps=16, force=True)  # replaced: a fresh run of 16 steps
+    assert sorted(p.name for p in (r / "checkpoints").iterdir()) == ["agent_0.pt", "agent_16.pt"]
+    with pytest.raises(FileNotFoundError, match="nothing to resume"):
+        _tiny(tmp_path / "new", resume=True)
+
+
+def test_ctrl_c_saves_a_checkpoint_and_says_how_to_resume(tmp_path, monkeypatch):
+    from sonogym.agents import adapter as adapter_mod
+
+    real_step = adapter_mod.SkrlEnvAdapter.step
+    calls = {"n": 0}
+
+    def step(self, actions):
+        calls["n"] += 1
+        if calls["n"] == 13:
+            raise KeyboardInterrupt
+        return real_step(self, actions)
+
+    monkeypatch.setattr(adapter_mod.SkrlEnvAdapter, "step", step)
+    logged = []
+    with pytest.raises(TrainingInterrupted, match="--resume"):
+        _tiny(tmp_path / "r", log=logged.append)
+    assert (tmp_path / "r" / "checkpoints" / "agent_12.pt").is_file()  # 12 completed steps
+    assert "agent_12.pt" in logged[-1] and "--resume" in logged[-1]
+    monkeypatch.setattr(adapter_mod.SkrlEnvAdapter, "step", real_step)
+    assert _tiny(tmp_path / "r", resume=True).steps == 32
+
+
+class _Payload:
+    def __reduce__(self):  # what a hostile checkpoint would carry
+        return (open, ("/tmp/sonogym-pwned", "w"))
+
+
+def test_checkpoints_never_unpickle_code(tmp_path):
+    import os
+
+    target = "/tmp/sonogym-pwned"
+    if os.path.exists(target):
+        os.remove(target)
+    bad = tmp_path / "agent_5.pt"
+    torch.save({"policy": {"w": torch.zeros(1)}, "x": _Payload()}, bad, pickle_module=pickle)
+    with pytest.raises(CheckpointError, match="agent_5.pt"):
+        read_checkpoint(bad)
+    assert not os.path.exists(target)
+
+
+def test_cli_refuses_bad_training_options_with_a_message(tmp_path):
+    runner = CliRunner()
+    for args, msg in (
+        (["--steps", "0"], "--steps must be a positive integer"),
+        (["--steps", "-5"], "--steps must be a positive integer"),
+        (["--envs", "0"], "--envs must be a positive integer"),
+        (["--obs-downsample", "0"], "--obs-downsample must be a positive integer"),
+        (["--preset", "gpu"], "unknown preset"),
+    ):
+        res = runner.invoke(app, ["train", "--task", "navigation", "--out", str(tmp_path / "x"),
+                                  *args])  # fmt: skip
+        assert res.exit_code != 0 and msg in res.output, (args, res.output)
+        assert not (tmp_path / "x" / "checkpoints").exists()
+
+
+def test_malformed_run_config_is_named(run, tmp_path):
+    import shutil
+
+    r = tmp_path / "r"
+    shutil.copytree(run, r)
+    (r / "config.json").write_text("{not json")
+    with pytest.raises(ValueError, match="config.json is not valid JSON"):
+        evaluate_run(r, trials=1, envs=1)
+    (r / "config.json").write_text(json.dumps({"task": "navigation"}))
+    with pytest.raises(ValueError, match="lacks"):
+        evaluate_run(r, trials=1, envs=1)

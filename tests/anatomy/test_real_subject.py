@@ -13,8 +13,6 @@ from sonogym.anatomy import labels as L
 from sonogym.anatomy import landmarks as LM
 
 SUBJECT = Path(__file__).resolve().parents[3] / "shared" / "data" / "totalsegmentator_example"
-if not SUBJECT.is_dir():  # worktrees sit beside main; the data sits beside them
-    SUBJECT = Path("/work/shared/data/totalsegmentator_example")
 LEVELS = ("L1", "L2", "L3", "L4", "L5")
 
 pytestmark = pytest.mark.skipif(not SUBJECT.is_dir(), reason="shared real subject not present")

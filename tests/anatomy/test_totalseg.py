@@ -93,10 +93,11 @@ def _folder_with(tmp_path, ct, masks, aff=None):
 def test_bad_inputs_raise_clear_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         load_totalsegmentator(tmp_path / "nope")
-    ct = np.full((20, 20, 20), -1000, np.int16)
-    ct[5:15, 5:15, 5:15] = 40
-    m = np.zeros((20, 20, 20), np.uint8)
-    m[8:12, 8:12, 8:12] = 1
+    ct = np.full((24, 24, 24), -1000, np.int16)
+    ct[3:21, 3:21, 3:21] = 40
+    m = np.zeros((24, 24, 24), np.uint8)
+    m[5:18, 5:18, 5:18] = 1  # 17.6 mL at 2 mm: an adult vertebra's volume
+    ct[m > 0] = 300
     f = _folder_with(tmp_path, None, {"vertebrae_L4.nii.gz": (m, None)})
     with pytest.raises(FileNotFoundError, match="ct.nii.gz"):
         load_totalsegmentator(f)
@@ -123,7 +124,7 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
 def test_combined_map_with_foreign_ids_is_refused(tmp_path):
     f = tmp_path / "c"
     f.mkdir()
-    nib.save(nib.Nifti1Image(np.zeros((8, 8, 8), np.int16), np.eye(4)), f / "ct.nii.gz")
+    nib.save(nib.Nifti1Image(np.full((8, 8, 8), -1000, np.int16), np.eye(4)), f / "ct.nii.gz")
     lab = np.zeros((8, 8, 8), np.uint8)
     lab[2, 2, 2] = 200
     nib.save(nib.Nifti1Image(lab, np.eye(4)), f / "combined_label_map.nii.gz")

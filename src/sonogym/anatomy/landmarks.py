@@ -8,21 +8,28 @@ One code path for phantoms and real TotalSegmentator data. Rules (ultrasound_phy
 * Spinal canal: the hole enclosed by the vertebral ring in a +/-6 mm slab around the centroid.
 * Pedicle centre: centroid of the vertebra's voxels lateral to the canal, within the canal's
   middle half in the anterior direction (the bony bridge between body and posterior arch).
-* Trajectory: through the pedicle centre, medially converging by 5 deg per lumbar level
-  (L4: 20 deg, Dickman 1992), parallel to the superior endplate (no sagittal angle). Entry: where
-  the line leaves the bone posteriorly (the posterior bone surface). Target: 80 % of the in-bone
-  length from the entry toward the anterior cortex (inside the body). Radius: the largest
-  corridor (<= 3.5 mm, 0.25 mm steps) that stays in the vertebra from 5 mm past the entry
-  (the entry itself lies on an oblique surface) to the target.
+* Trajectory: the straight path, among those the anatomical rules allow, that keeps the widest
+  corridor inside the vertebra (``plan_corridor``):
+    - medial convergence 5 deg per lumbar level (L4: 20 deg, Dickman 1992) within
+      ``MEDIAL_TOLERANCE`` (anatomical pedicle axes run 10 deg at L1 to 30 deg at L5, Zindrick);
+      sagittal angle parallel to the superior endplate within ``SAGITTAL_TOLERANCE``; every
+      degree away from the textbook angles costs ``ANGLE_COST`` of clearance, so the textbook
+      trajectory is kept unless another buys a wider corridor;
+    - the line may pass anywhere within ``OFFSET_RANGE`` of the pedicle centre;
+    - entry where the line leaves the bone posteriorly (the posterior bone surface, behind the
+      canal); target at 80 % of the in-bone length from the entry toward the anterior cortex, in
+      the body (in front of the canal); entry-to-target length within ``LENGTH_RANGE``.
+  Radius: the largest corridor (<= 3.5 mm, 0.25 mm steps) that stays in the vertebra from 5 mm
+  past the entry (the entry itself lies on an oblique surface) to the target. A corridor under
+  ``MIN_RADIUS``, or no path that meets the rules, is refused: ``Landmarks.trajectory`` then
+  raises a ``LandmarkError`` naming the level, the side and why.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 from scipy import ndimage
 
 from sonogym.anatomy import labels as L
@@ -30,8 +37,24 @@ from sonogym.anatomy.volume import Volume
 
 _SPINE_ORDER = ["T11", "T12", "L1", "L2", "L3", "L4", "L5", "S1"]
 _MAX_RADIUS = 0.0035  # m, a 7 mm screw
+_RADIUS_STEP = 0.00025  # m, resolution of the reported radius
 _TARGET_FRACTION = 0.8
 _CORRIDOR_START = 0.005  # m past the entry
+_BACK_RANGE = 0.045  # m searched behind the pedicle for the entry
+_FORWARD_RANGE = 0.08  # m searched in front of it for the anterior cortex
+
+#: Allowed medial angle, degrees relative to the 5 deg x level rule (more medial positive).
+MEDIAL_TOLERANCE = (-5.0, 10.0)
+#: Allowed sagittal angle, +-degrees from parallel to the superior endplate.
+SAGITTAL_TOLERANCE = 10.0
+#: Clearance (m) one degree of deviation from the textbook angles must buy.
+ANGLE_COST = 0.0001
+#: How far (m) the line may pass from the pedicle centre, in its cross-section.
+OFFSET_RANGE = 0.006
+#: Entry-to-target length (m): 40-50 mm is typical at L4, shorter at L1.
+LENGTH_RANGE = (0.030, 0.060)
+#: Smallest corridor radius (m) a planned trajectory may have.
+MIN_RADIUS = 0.0015
 
 
 class LandmarkError(ValueError):
@@ -65,7 +88,7 @@ class VertebraFrame:
 @dataclass(frozen=True)
 class PedicleTrajectory:
     """A planned pedicle-screw path in {P}: entry on the posterior bone surface, target in the
-    body, corridor radius (all metres)."""
+    body, corridor radius (all metres), and its angles from the textbook ones (degrees)."""
 
     level: str
     side: str  # "left" or "right" (the patient's)
@@ -74,6 +97,8 @@ class PedicleTrajectory:
     radius: float
     pedicle_centre: np.ndarray
     pedicle_width: float  # m, lateral extent of the pedicle at its centre
+    medial_deviation: float = 0.0  # deg, more medial than 5 deg x level when positive
+    sagittal_angle: float = 0.0  # deg, toward superior when positive
 
     @property
     def direction(self) -> np.ndarray:
@@ -88,16 +113,22 @@ class PedicleTrajectory:
 
 @dataclass(frozen=True)
 class Landmarks:
-    """Frames of the lumbar vertebrae present and planned trajectories for L1-L5, both sides."""
+    """Frames of the lumbar vertebrae present and planned trajectories for L1-L5, both sides.
+
+    ``refused`` maps a level ("L1") or a (level, side) to why it has no frame or trajectory."""
 
     vertebrae: dict[str, VertebraFrame]
     trajectories: dict[tuple[str, str], PedicleTrajectory]
+    refused: dict = field(default_factory=dict)
+    name: str = "patient"
 
     def vertebra(self, level: str) -> VertebraFrame:
+        if level in self.refused:
+            raise LandmarkError(f"{self.name}: vertebra {level}: {self.refused[level]}")
         if level not in self.vertebrae:
             raise LandmarkError(
-                f"vertebra {level} is not in this patient (present: {sorted(self.vertebrae)}); "
-                "choose a target vertebra the label map contains"
+                f"{self.name}: vertebra {level} is not in this patient (present: "
+                f"{sorted(self.vertebrae)}); choose a target vertebra the label map contains"
             )
         return self.vertebrae[level]
 
@@ -106,57 +137,114 @@ class Landmarks:
             raise ValueError(f"side must be 'left' or 'right', got {side!r}")
         self.vertebra(level)
         if (level, side) not in self.trajectories:
-            raise LandmarkError(f"no planned trajectory for {level} {side}: see the vertebra mask")
+            why = self.refused.get((level, side), "see the vertebra mask")
+            raise LandmarkError(f"{self.name}: no usable {level} {side} pedicle trajectory: {why}")
         return self.trajectories[(level, side)]
 
     @classmethod
     def from_patient(cls, patient: Volume) -> Landmarks:
-        labels = patient.labels
-        present = [lv for lv in _SPINE_ORDER if (labels == L.VERTEBRA_IDS[lv]).any()]
+        lab_np = patient.labels.numpy()
+        ids = np.array([L.VERTEBRA_IDS[lv] for lv in _SPINE_ORDER], np.uint8)
+        # One pass over the volume: voxel indices of every spine level, grouped by label.
+        flat = np.flatnonzero(np.isin(lab_np, ids))
+        vals = lab_np.reshape(-1)[flat]
+        order = np.argsort(vals, kind="stable")
+        flat, vals = flat[order], vals[order]
+        bounds = np.searchsorted(vals, ids), np.searchsorted(vals, ids, side="right")
+        present = [lv for k, lv in enumerate(_SPINE_ORDER) if bounds[1][k] > bounds[0][k]]
         if not any(lv in L.LUMBAR_VERTEBRAE for lv in present):
             raise LandmarkError(f"{patient.name}: no lumbar vertebra (L1-L5) in the label map")
         sp, org = patient.spacing, patient.origin
-        pts = {}
-        for lv in present:
-            idx = torch.nonzero(labels == L.VERTEBRA_IDS[lv]).numpy()
-            pts[lv] = org + idx * sp
+        pts, idx = {}, {}
+        for k, lv in enumerate(_SPINE_ORDER):
+            if lv in present:
+                sel = flat[bounds[0][k] : bounds[1][k]]
+                idx[lv] = np.stack(np.unravel_index(sel, lab_np.shape), 1)
+                pts[lv] = org + idx[lv] * sp
         cents = {lv: p.mean(0) for lv, p in pts.items()}
-        vol = _BoneLookup(patient)
         frames: dict[str, VertebraFrame] = {}
         trajs: dict[tuple[str, str], PedicleTrajectory] = {}
+        refused: dict = {}
         for i, lv in enumerate(present):
             if lv not in L.LUMBAR_VERTEBRAE:
+                continue
+            cut = _cut_by_fov(idx[lv], lab_np.shape)
+            if cut:
+                refused[lv] = (
+                    f"its mask touches the field of view's edge ({cut}): the scan cuts it, so "
+                    "its centre, frame and trajectories would be wrong"
+                )
                 continue
             up = present[i - 1] if i > 0 else None
             lo = present[i + 1] if i + 1 < len(present) else None
             a_, b_ = cents[up] if up else cents[lv], cents[lo] if lo else cents[lv]
             s_ax = a_ - b_ if up or lo else np.array([0.0, 0.0, 1.0])
             s_ax = s_ax / np.linalg.norm(s_ax)
-            frame = _vertebra_frame(lv, pts[lv], cents[lv], s_ax, sp.min())
+            try:
+                frame = _vertebra_frame(lv, pts[lv], cents[lv], s_ax, sp.min())
+            except LandmarkError as e:
+                refused[lv] = str(e).removeprefix(f"vertebra {lv}: ")
+                continue
             frames[lv] = frame
+            bone = _BoneField(lab_np, L.VERTEBRA_IDS[lv], idx[lv], org, sp)
             for side in ("left", "right"):
-                t = _plan(lv, side, frame, pts[lv], vol, L.VERTEBRA_IDS[lv], sp.min())
-                if t is not None:
+                t = plan_corridor(lv, side, frame, pts[lv], bone)
+                if isinstance(t, str):
+                    refused[(lv, side)] = t
+                else:
                     trajs[(lv, side)] = t
-        return cls(frames, trajs)
+        return cls(frames, trajs, refused, patient.name)
 
 
 # ----------------------------------------------------------------------------- internals
 
 
-class _BoneLookup:
-    """Nearest-voxel label lookups at patient-frame points."""
+def _cut_by_fov(idx: np.ndarray, shape) -> str:
+    """Which volume faces a mask (voxel indices (N, 3)) touches, '' when none."""
+    faces = []
+    for ax, name in enumerate("xyz"):
+        if idx[:, ax].min() == 0:
+            faces.append(f"first {name} slice")
+        if idx[:, ax].max() == shape[ax] - 1:
+            faces.append(f"last {name} slice")
+    return ", ".join(faces)
 
-    def __init__(self, patient: Volume) -> None:
-        self.labels = patient.labels.numpy()
-        self.to_voxel = patient.world_to_voxel_np
 
-    def label_at(self, p: np.ndarray) -> np.ndarray:
-        ijk = np.rint(self.to_voxel(p)).astype(int)
-        inside = ((ijk >= 0) & (ijk < self.labels.shape)).all(-1)
-        ijk = np.clip(ijk, 0, np.array(self.labels.shape) - 1)
-        out = self.labels[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
-        return np.where(inside, out, 0)
+class _BoneField:
+    """One vertebra on a crop around it: nearest-voxel membership and a signed distance to its
+    surface (m, positive inside; the surface lies halfway between inside and outside voxel
+    centres), both at patient-frame points."""
+
+    def __init__(self, labels: np.ndarray, label: int, idx: np.ndarray, origin, spacing) -> None:
+        pad = np.ceil(0.004 / spacing).astype(int) + 2
+        lo = np.maximum(idx.min(0) - pad, 0)
+        hi = np.minimum(idx.max(0) + pad + 1, labels.shape)
+        crop = labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] == label
+        self.label = label
+        self.spacing = np.asarray(spacing, np.float64)
+        self.origin = np.asarray(origin, np.float64) + lo * self.spacing
+        self.inside_grid = crop
+        half = 0.5 * float(self.spacing.min())
+        # Outside voxels all get -half: only clearances inside the bone are ever asked for, and
+        # an outside voxel next to the surface is exactly half a voxel from it.
+        d_in = ndimage.distance_transform_edt(crop, sampling=self.spacing)
+        self.sd_grid = np.where(crop, d_in - half, -half).astype(np.float32)
+
+    def _ijk(self, p: np.ndarray) -> np.ndarray:
+        return (p - self.origin) / self.spacing
+
+    def inside(self, p: np.ndarray) -> np.ndarray:
+        """(...,) whether the nearest voxel of each point (..., 3) belongs to the vertebra."""
+        ijk = np.rint(self._ijk(p)).astype(np.int64)
+        ok = ((ijk >= 0) & (ijk < self.inside_grid.shape)).all(-1)
+        ijk = np.clip(ijk, 0, np.array(self.inside_grid.shape) - 1)
+        return ok & self.inside_grid[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+
+    def signed_distance(self, p: np.ndarray) -> np.ndarray:
+        """(...,) trilinear signed distance (m) at points (..., 3); outside the crop: negative."""
+        ijk = self._ijk(p).reshape(-1, 3).T
+        v = ndimage.map_coordinates(self.sd_grid, ijk, order=1, mode="constant", cval=-0.01)
+        return v.reshape(p.shape[:-1])
 
 
 def _project(pts: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -203,6 +291,10 @@ def _vertebra_frame(level, pts, centroid, s_ax, h) -> VertebraFrame:
     # Body: voxels anterior of the canal, within 30 mm of the midline.
     q = _project(pts, cc, np.stack([l0, a0, s_ax], 1))
     body = pts[(q[:, 1] > hd + 0.002) & (np.abs(q[:, 0]) < 0.03)]
+    if len(body) < 10:
+        raise LandmarkError(
+            f"vertebra {level}: its mask has no vertebral body in front of the canal"
+        )
     body_c = body.mean(0)
     a_ax = body_c - cc
     a_ax -= (a_ax @ s_ax) * s_ax
@@ -216,24 +308,125 @@ def _vertebra_frame(level, pts, centroid, s_ax, h) -> VertebraFrame:
     return VertebraFrame(level, body_c, rot, cc, float(hw), float(hd))
 
 
-def _march(vol, start, direction, label, step, max_len, max_gap):
-    """Distance along ``direction`` from ``start`` to where the bone of ``label`` ends (gaps up
-    to ``max_gap`` are bridged)."""
-    n = int(max_len / step)
-    ts = np.arange(n) * step
-    inside = vol.label_at(start + ts[:, None] * direction) == label
-    last, gap = 0.0, 0.0
-    for t, ok in zip(ts, inside, strict=True):
-        if ok:
-            last, gap = t, 0.0
-        else:
-            gap += step
-            if gap > max_gap:
-                break
-    return last
+@dataclass
+class _Lines:
+    """Candidate trajectories evaluated along their lines (arrays over candidates)."""
+
+    anchor: np.ndarray  # (C, 3) point on the line, in the pedicle
+    d: np.ndarray  # (C, 3) unit direction, posterior -> anterior
+    medial: np.ndarray  # (C,) deg deviation from 5 deg x level
+    sagittal: np.ndarray  # (C,) deg
+    entry_t: np.ndarray = None  # (C,) m along d from the anchor
+    target_t: np.ndarray = None
+    clearance: np.ndarray = None  # (C,) m, min signed distance from 5 mm past entry to target
+    why: np.ndarray = None  # (C,) int, 0 valid, else the rule that failed (_RULES)
 
 
-def _plan(level, side, frame, pts, vol, label, h) -> PedicleTrajectory | None:
+_RULES = (
+    "",
+    "the line through the pedicle leaves the bone there",
+    "the line never leaves the bone posteriorly within 45 mm",
+    "the in-bone length is outside the length rule",
+    "the entry is not on the posterior bone surface (behind the canal)",
+    "the target is not in the vertebral body (in front of the canal)",
+    "the path from entry to target leaves the bone",
+)
+
+
+def _directions(frame: VertebraFrame, sgn: float, nominal: float, medial, sagittal):
+    """(K, 3) unit directions for medial deviations and sagittal angles (deg, flat arrays)."""
+    th = np.radians(np.maximum(nominal + medial, 0.0))
+    ph = np.radians(sagittal)
+    horiz = np.cos(th)[:, None] * frame.anterior - sgn * np.sin(th)[:, None] * frame.lateral
+    d = np.cos(ph)[:, None] * horiz + np.sin(ph)[:, None] * frame.superior
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _candidates(frame, sgn, nominal, pc, medial, sagittal, offsets) -> _Lines:
+    """Every combination of (medial, sagittal) pairs and (u, v) offsets from the point pc."""
+    d = _directions(frame, sgn, nominal, medial, sagittal)  # (K, 3)
+    e1 = np.cross(frame.superior, d)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(d, e1)
+    u, v = offsets[:, 0], offsets[:, 1]  # (M,)
+    anchor = pc + u[None, :, None] * e1[:, None] + v[None, :, None] * e2[:, None]  # (K, M, 3)
+    k, m = anchor.shape[:2]
+    return _Lines(
+        anchor.reshape(-1, 3),
+        np.repeat(d, m, 0),
+        np.repeat(medial, m),
+        np.repeat(sagittal, m),
+    )
+
+
+def _walk(ins: np.ndarray, max_run: int) -> tuple[np.ndarray, np.ndarray]:
+    """Walk samples (C, T) from index 0 on: (index of the last bone sample before the first run
+    of more than ``max_run`` non-bone samples, whether no such run occurs)."""
+    t = ins.shape[1]
+    last_true = np.maximum.accumulate(np.where(ins, np.arange(t), -1), axis=1)
+    broken = (np.arange(t) - last_true) > max_run
+    k = np.where(broken.any(1), broken.argmax(1), t - 1)
+    return last_true[np.arange(len(ins)), k], ~broken.any(1)
+
+
+def _evaluate(lines: _Lines, bone: _BoneField, frame: VertebraFrame, step: float) -> _Lines:
+    """Entry, target, clearance and rule check of every candidate line (vectorised)."""
+    h = float(bone.spacing.min())
+    n_back, n_fwd = int(_BACK_RANGE / step), int(_FORWARD_RANGE / step)
+    ts = np.arange(-n_back, n_fwd + 1) * step  # (T,)
+    c = len(lines.d)
+    out_e, out_t = np.zeros(c), np.zeros(c)
+    clear, why = np.full(c, -np.inf), np.zeros(c, np.int64)
+    for s in range(0, c, 1024):  # chunks keep the (C, T, 3) sample array small
+        sl = slice(s, min(s + 1024, c))
+        pts = lines.anchor[sl, None] + ts[None, :, None] * lines.d[sl, None]
+        ins = bone.inside(pts)
+        w = np.where(ins[:, n_back], 0, 1)
+        # Back from the anchor: the entry is the last bone sample before a gap > 1 voxel;
+        # forward: the anterior cortex is the last one before a gap > 2 voxels.
+        back, open_back = _walk(ins[:, n_back::-1], int(1.01 * h / step + 1e-9))
+        fwd, _ = _walk(ins[:, n_back:], int(2.01 * h / step + 1e-9))
+        w[(w == 0) & open_back] = 2  # still in bone _BACK_RANGE back
+        e_t = -back * step
+        t_t = e_t + _TARGET_FRACTION * (fwd * step - e_t)
+        length = t_t - e_t
+        w[(w == 0) & ((length < LENGTH_RANGE[0]) | (length > LENGTH_RANGE[1]))] = 3
+        entry = lines.anchor[sl] + e_t[:, None] * lines.d[sl]
+        target = lines.anchor[sl] + t_t[:, None] * lines.d[sl]
+        w[(w == 0) & ((entry - frame.canal_centre) @ frame.anterior >= 0)] = 4
+        in_body = (target - frame.canal_centre) @ frame.anterior > frame.canal_half_depth
+        w[(w == 0) & ~in_body] = 5
+        on_path = (ts[None] >= e_t[:, None] - 1e-9) & (ts[None] <= t_t[:, None])
+        w[(w == 0) & (on_path & ~ins).any(1)] = 6
+        # Clearance from 5 mm past the entry (the entry itself lies on an oblique surface).
+        start = e_t + np.minimum(_CORRIDOR_START, length / 2)
+        ok = w == 0
+        if ok.any():
+            sd = bone.signed_distance(pts[ok])
+            span = (ts[None] >= start[ok, None]) & (ts[None] <= t_t[ok, None])
+            cl = np.full(len(w), -np.inf)
+            cl[ok] = np.where(span, sd, np.inf).min(1)
+            clear[sl] = cl
+        out_e[sl], out_t[sl], why[sl] = e_t, t_t, w
+    lines.entry_t, lines.target_t, lines.clearance, lines.why = out_e, out_t, clear, why
+    return lines
+
+
+def _score(lines: _Lines, h: float) -> np.ndarray:
+    """Clearance (capped where the screw no longer gains) minus the cost of leaving the textbook
+    angles; a tiny term for the uncapped clearance breaks ties toward the centred line."""
+    dev = np.hypot(lines.medial, lines.sagittal)
+    capped = np.minimum(lines.clearance, _MAX_RADIUS + _RADIUS_STEP)
+    s = capped - ANGLE_COST * dev + 1e-3 * lines.clearance
+    return np.where(lines.why == 0, s, -np.inf)
+
+
+def plan_corridor(
+    level: str, side: str, frame: VertebraFrame, pts: np.ndarray, bone: _BoneField
+) -> PedicleTrajectory | str:
+    """The widest-corridor trajectory within the rules (module docstring), or why there is
+    none (a sentence naming the level, side and the rule that failed)."""
+    h = float(bone.spacing.min())
     sgn = 1.0 if side == "right" else -1.0
     q = _project(pts, frame.canal_centre, frame.rotation)
     sel = (
@@ -242,28 +435,93 @@ def _plan(level, side, frame, pts, vol, label, h) -> PedicleTrajectory | None:
         & (sgn * q[:, 0] < frame.canal_half_width + 0.015)
     )
     if sel.sum() < 3:
-        return None
+        return f"{level} {side}: no pedicle lateral to the canal in the vertebra mask"
     ped = pts[sel]
     pc = ped.mean(0)
-    n_level = int(level[1])
-    th = math.radians(5.0 * n_level)
-    d = math.cos(th) * frame.anterior - sgn * math.sin(th) * frame.lateral
-    d /= np.linalg.norm(d)
+    nominal = 5.0 * int(level[1])
+    st = max(h, 0.001)
+
+    def grid(half, step):
+        n = int(half / step + 1e-9)
+        g = np.arange(-n, n + 1) * step
+        return np.stack([a.ravel() for a in np.meshgrid(g, g, indexing="ij")], 1)
+
+    def search(anchor, med, sag, offsets, step):
+        lines = _evaluate(_candidates(frame, sgn, nominal, anchor, med, sag, offsets), bone,
+                          frame, step)  # fmt: skip
+        return lines, _score(lines, h)
+
+    def refine(lines, score, angle_step):
+        """Finer offsets (and angles, when angle_step) around the best, sampled at h/4."""
+        b = int(np.argmax(score))
+        dm = np.array([-angle_step, 0.0, angle_step]) if angle_step else np.zeros(1)
+        fm, fs = np.meshgrid(lines.medial[b] + dm, lines.sagittal[b] + 2 * dm, indexing="ij")
+        fm, fs = fm.ravel(), fs.ravel()
+        keep = (fm >= MEDIAL_TOLERANCE[0]) & (fm <= MEDIAL_TOLERANCE[1])
+        keep &= np.abs(fs) <= SAGITTAL_TOLERANCE
+        return search(lines.anchor[b], fm[keep], fs[keep], grid(st, st / 2), h / 4)
+
+    # 1. Textbook angles, the line anywhere within OFFSET_RANGE of the pedicle centre.
+    zero = np.zeros(1)
+    lines, score = search(pc, zero, zero, grid(OFFSET_RANGE, st), h / 2)
+    if np.isfinite(score).any():
+        anchor = lines.anchor[int(np.argmax(score))]
+        lines, score = refine(lines, score, 0.0)
+    else:
+        counts = np.bincount(lines.why, minlength=len(_RULES))
+        rule = _RULES[int(np.argmax(counts[1:])) + 1]
+        anchor = pc
+    # 2. Every allowed angle pair, the line within 2 mm of that anchor, refined the same way;
+    # kept only if it beats the textbook line after its angle cost.
+    m_grid = np.arange(MEDIAL_TOLERANCE[0], MEDIAL_TOLERANCE[1] + 1e-9, 2.5)
+    s_grid = np.arange(-SAGITTAL_TOLERANCE, SAGITTAL_TOLERANCE + 1e-9, 5.0)
+    mm, ss = (a.ravel() for a in np.meshgrid(m_grid, s_grid, indexing="ij"))
+    lines2, score2 = search(anchor, mm, ss, grid(0.002, st), h / 2)
+    if np.isfinite(score2).any():
+        lines2, score2 = refine(lines2, score2, 1.25)
+        if not np.isfinite(score).any() or score2.max() > score.max():
+            lines, score = lines2, score2
+    if not np.isfinite(score).any():
+        return (
+            f"{level} {side}: no path within the rules (medial {nominal:g} deg "
+            f"{MEDIAL_TOLERANCE[0]:+g}/{MEDIAL_TOLERANCE[1]:+g}, sagittal +-{SAGITTAL_TOLERANCE:g}"
+            f" deg, length {LENGTH_RANGE[0] * 1e3:g}-{LENGTH_RANGE[1] * 1e3:g} mm): at the "
+            f"textbook angles {rule} (is the mask a whole, binary vertebra at the right voxel "
+            "size?)"
+        )
+    b = int(np.argmax(score))
+    d = lines.d[b]
+    entry = lines.anchor[b] + lines.entry_t[b] * d
+    target = lines.anchor[b] + lines.target_t[b] * d
+    radius = _corridor_radius(bone, entry, target, h)
+    if radius < MIN_RADIUS - 1e-9:
+        return (
+            f"{level} {side}: the widest corridor within the rules has radius "
+            f"{radius * 1e3:.2f} mm, under the {MIN_RADIUS * 1e3:g} mm minimum (a pedicle too "
+            "narrow, or a mask with holes, for a screw)"
+        )
     # Width across the pedicle axis, in the cross-section through the pedicle centre.
     perp = np.cross(frame.superior, d)
+    perp /= np.linalg.norm(perp)
     rel = ped - pc
     near = (np.abs(rel @ d) < h) & (np.abs(rel @ frame.superior) < h)
     width = float(np.ptp(rel[near] @ perp) + h) if near.sum() > 1 else float("nan")
-    step = h / 4
-    back = _march(vol, pc, -d, label, step, 0.08, 1.01 * h)
-    entry = pc - back * d
-    fwd = _march(vol, entry, d, label, step, 0.12, 2.01 * h)
-    target = entry + _TARGET_FRACTION * fwd * d
-    radius = _corridor_radius(vol, entry, target, label, h)
-    return PedicleTrajectory(level, side, entry, target, radius, pc, width)
+    return PedicleTrajectory(
+        level,
+        side,
+        entry,
+        target,
+        radius,
+        pc,
+        width,
+        float(np.degrees(np.arctan2(-sgn * d @ frame.lateral, d @ frame.anterior)) - nominal),
+        float(np.degrees(np.arcsin(np.clip(d @ frame.superior, -1, 1)))),
+    )
 
 
-def _corridor_radius(vol, entry, target, label, h) -> float:
+def _corridor_radius(bone: _BoneField, entry, target, h) -> float:
+    """Largest radius (0.25 mm steps, <= 3.5 mm) whose rings around the axis, from 5 mm past the
+    entry to the target, all fall on voxels of the vertebra."""
     axis = target - entry
     length = np.linalg.norm(axis)
     d = axis / length
@@ -272,16 +530,12 @@ def _corridor_radius(vol, entry, target, label, h) -> float:
         e1 = np.cross(d, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(d, e1)
-    # The corridor is checked from _CORRIDOR_START past the entry: the entry itself lies on an
-    # oblique bone surface, which any ring around the axis crosses.
     ts = np.arange(min(_CORRIDOR_START, length / 2), length, h / 2)[:, None, None]
     ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
     ring = np.cos(ang)[None, :, None] * e1 + np.sin(ang)[None, :, None] * e2
     best = 0.0
-    for r in np.arange(0.00025, _MAX_RADIUS + 1e-9, 0.00025):
-        p = entry + ts * d + r * ring
-        ok = vol.label_at(p) == label
-        if not ok.all():
+    for r in np.arange(_RADIUS_STEP, _MAX_RADIUS + 1e-9, _RADIUS_STEP):
+        if not bone.inside(entry + ts * d + r * ring).all():
             break
         best = r
     return round(float(best), 6)

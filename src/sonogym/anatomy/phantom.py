@@ -21,6 +21,8 @@ import hashlib
 import json
 import math
 import os
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -647,35 +649,101 @@ def load_phantom(
     """``make_phantom`` with an on-disk cache keyed by seed and parameters.
 
     ``cache``: True for :func:`cache_dir`, a folder, or False to always build.
+
+    An entry is ``phantom-<seed>-<key>.npz`` (the CT as int16 and the labels, no pickle) and a
+    ``.json`` sidecar (name, affine, provenance and a SHA-256 of all of it), each written to a
+    temporary file and renamed, so readers never see a partial entry. An entry that does not
+    verify is reported with a warning naming it and rebuilt; temporary files left by killed
+    writers are removed.
     """
     if cache is False:
         return make_phantom(seed, params)
     folder = cache_dir() if cache is True else Path(cache)
-    path = folder / f"phantom-{seed}-{phantom_cache_key(seed, params)}.pt"
-    if path.exists():
+    stem = folder / f"phantom-{seed}-{phantom_cache_key(seed, params)}"
+    _clean_stale_temporaries(folder)
+    if stem.with_suffix(".json").exists() or stem.with_suffix(".npz").exists():
         try:
-            d = torch.load(path, weights_only=False)
-            return Patient(
-                ct=d["ct"].float(),
-                labels=d["labels"],
-                affine=d["affine"],
-                name=d["name"],
-                meta=d["meta"],
+            return _read_entry(stem)
+        except Exception as e:  # any failure to verify: report, then rebuild
+            warnings.warn(
+                f"phantom cache entry {stem}.npz/.json is unreadable or corrupt ({e}); "
+                "rebuilding it",
+                RuntimeWarning,
+                stacklevel=2,
             )
-        except Exception:  # a corrupt or partial cache entry: rebuild it
-            path.unlink(missing_ok=True)
     patient = make_phantom(seed, params)
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
-    torch.save(
-        {
-            "ct": patient.ct.to(torch.int16),
-            "labels": patient.labels,
-            "affine": patient.affine,
-            "name": patient.name,
-            "meta": patient.meta,
-        },
-        tmp,
-    )
-    tmp.replace(path)
+    _write_entry(stem, patient)
+    stem.with_suffix(".pt").unlink(missing_ok=True)  # the old pickle format of this entry
     return patient
+
+
+def _digest(arrays: dict[str, np.ndarray], info: dict) -> str:
+    h = hashlib.sha256(json.dumps(info, sort_keys=True).encode())
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _atomic_write(path: Path, write) -> None:
+    """``write(file)`` into a temporary file beside ``path``, then rename it into place."""
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_entry(stem: Path, patient: Patient) -> None:
+    arrays = {"ct": patient.ct.to(torch.int16).numpy(), "labels": patient.labels.numpy()}
+    info = {
+        "format": 1,
+        "name": patient.name,
+        "affine": patient.affine.tolist(),
+        "meta": patient.meta,
+    }
+    info = json.loads(json.dumps(info, default=str))  # what the sidecar will hold, exactly
+    side = {**info, "sha256": _digest(arrays, info)}
+    _atomic_write(stem.with_suffix(".npz"), lambda f: np.savez(f, **arrays))
+    _atomic_write(stem.with_suffix(".json"), lambda f: f.write(json.dumps(side).encode()))
+
+
+def _read_entry(stem: Path) -> Patient:
+    side = json.loads(stem.with_suffix(".json").read_text())
+    want = side.pop("sha256")
+    with np.load(stem.with_suffix(".npz"), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in ("ct", "labels")}
+    if _digest(arrays, side) != want:
+        raise ValueError("checksum mismatch")
+    return Patient(
+        ct=torch.from_numpy(arrays["ct"].astype(np.float32)),
+        labels=torch.from_numpy(arrays["labels"]),
+        affine=np.asarray(side["affine"], dtype=np.float64),
+        name=side["name"],
+        meta=side["meta"],
+    )
+
+
+_TMP = re.compile(r"^phantom-.*\.tmp(\d+)$")
+
+
+def _clean_stale_temporaries(folder: Path) -> None:
+    """Remove ``phantom-*.tmp<pid>`` files whose writer process no longer exists."""
+    if not folder.is_dir():
+        return
+    for f in folder.iterdir():
+        m = _TMP.match(f.name)
+        if m is None or int(m.group(1)) == os.getpid():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:  # the writer is dead: its file will never be renamed
+            f.unlink(missing_ok=True)
+        except (PermissionError, OverflowError, OSError):
+            pass  # alive (another user's) or not a pid we can ask about: leave it

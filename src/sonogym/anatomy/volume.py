@@ -55,8 +55,10 @@ class Volume:
             raise PatientError(f"{self.name}: CT must be float32 HU, got {ct.dtype}")
         if labels.dtype != torch.uint8:
             raise PatientError(f"{self.name}: labels must be uint8, got {labels.dtype}")
-        if torch.isnan(ct).any():
-            raise PatientError(f"{self.name}: CT contains NaN; fill or crop them before loading")
+        if not torch.isfinite(ct).all():
+            raise PatientError(
+                f"{self.name}: CT contains NaN or inf; replace them (e.g. by -1024 HU) first"
+            )
         aff = np.asarray(self.affine, dtype=np.float64)
         if aff.shape != (4, 4):
             raise PatientError(f"{self.name}: affine must be 4x4, got {aff.shape}")

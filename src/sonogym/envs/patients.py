@@ -7,22 +7,41 @@ from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
 
-from sonogym.anatomy import Patient, PhantomParams, load_phantom, load_totalsegmentator
+from sonogym.anatomy import (
+    LandmarkError,
+    Patient,
+    PatientError,
+    PhantomParams,
+    load_phantom,
+    load_totalsegmentator,
+)
 
 PatientSpec = int | str | Path
+
+#: The vertebra every task is built around.
+TARGET = "L4"
 
 
 @lru_cache(maxsize=16)
 def _load(spec: int | str, spacing: float) -> Patient:
     if isinstance(spec, int):
         return load_phantom(spec, PhantomParams(spacing=spacing))
-    return load_totalsegmentator(spec, spacing=spacing, target="L4")
+    try:
+        patient = load_totalsegmentator(spec, spacing=spacing, target=TARGET)
+        patient.landmarks.vertebra(TARGET)  # every task needs its frame: fail here, not later
+    except (PatientError, LandmarkError, FileNotFoundError) as e:
+        if spec in str(e):
+            raise
+        raise type(e)(f"patient folder {spec}: {e}") from e
+    return patient
 
 
 def resolve_patients(specs: Sequence[PatientSpec] | PatientSpec, spacing: float) -> list[Patient]:
     """Patients for a list of phantom seeds (int) and/or folders (str or Path).
 
     Phantoms come from the on-disk cache (built once); loaded patients are shared in-process.
+    A folder is loaded with its L4 required whole (``load_totalsegmentator(target="L4")``) and
+    its L4 frame computed; any problem raises an error naming the folder.
     """
     if isinstance(specs, int | str | Path):
         specs = [specs]

@@ -123,11 +123,13 @@ _TENSOR_FIELDS = ("ct", "labels", "origin", "row_step", "col_step", "seed", "pat
 
 
 def speckle_seed(patient: Patient) -> int:
-    """A patient's speckle seed: ``meta['speckle_seed']`` if set, else a stable hash of its name
-    (so the same patient always shows the same speckle)."""
+    """A patient's speckle seed: ``meta['speckle_seed']`` if set (loaded subjects carry a hash
+    of their content there), else a stable hash of its name (phantoms: "phantom-<seed>"), so
+    the same patient always shows the same speckle. Names from the file system may hold
+    surrogate-escaped bytes (non-UTF-8 folder names): they are hashed as such, never rejected."""
     seed = patient.meta.get("speckle_seed") if isinstance(patient.meta, dict) else None
-    if seed is None:
-        seed = zlib.crc32(patient.name.encode())
+    if isinstance(seed, bool) or not hasattr(seed, "__index__"):  # ints and numpy ints only
+        seed = zlib.crc32(str(patient.name).encode("utf-8", "surrogatepass"))
     return int(seed) & 0x7FFFFFFF
 
 

@@ -103,23 +103,22 @@ def test_backing_out_of_the_corridor_gives_back_what_going_in_earned():
 
 
 def test_leaving_the_safe_set_costs_what_it_earned_plus_the_penalty():
-    # out of the corridor at 20 mm before the target: the insertion's value and w6 l are lost
+    # out of the corridor at 20 mm before the target: everything the insertion earned is lost
     p0, p1 = np.array([0, 0, -0.02]), np.array([0.01, 0, -0.02])
     r, c, reg = _reward(p0.tolist(), 0.0, p1.tolist(), 0.0)
     pl = np.array([0, 0, -L])
-    phi0 = W6 * (L - np.linalg.norm(p0))
-    phi1 = -W4 * np.linalg.norm(p1 - pl) - W6 * L
+    phi0 = W6 * (L - np.linalg.norm(p0))  # 9: the insertion so far
+    phi1 = -W4 * np.linalg.norm(p1 - pl)
     assert c.item() == 1.0 and reg.item() == UNSAFE
     assert r.item() == pytest.approx(phi1 - phi0 - P)
-    assert r.item() < -W6 * L  # worse than losing the whole insertion
+    assert r.item() < -phi0
     # within the unsafe region: the C_free formula's shaping toward p_l, minus the penalty
     r, c, _ = _reward([0.03, 0, -0.04], 0.0, [0.02, 0, -0.04], 0.0)
     want = W4 * (np.hypot(0.03, 0.01) - np.hypot(0.02, 0.01)) - P
     assert c.item() == 1.0 and r.item() == pytest.approx(want)
-    # back into C_free: the step-up of w6 l is paid back, no penalty
+    # back into C_free: the same formula, no penalty
     r, c, reg = _reward([0.02, 0, -0.045], 0.0, [0.02, 0, -0.055], 0.0)
-    want = W6 * L + W4 * (np.hypot(0.02, 0.005) - np.hypot(0.02, 0.005))
-    assert c.item() == 0 and reg.item() == FREE and r.item() == pytest.approx(want)
+    assert c.item() == 0 and reg.item() == FREE and r.item() == pytest.approx(0.0, abs=1e-12)
 
 
 def _paper_reward_unguarded(path, thetas):
@@ -301,8 +300,7 @@ def test_reward_and_cost_on_recorded_transitions():
         reg = region(p)
         out = -W4 * np.linalg.norm(p - pl, axis=1)
         d = W6 * (L - np.linalg.norm(p, axis=1))
-        v = np.where(reg == DRILL, d, out) - W5 * th
-        return np.where(reg == UNSAFE, v - W6 * L, v)
+        return np.where(reg == DRILL, d, out) - W5 * th
 
     checked_paper = 0
     for t in range(150):

@@ -36,9 +36,8 @@ leaves a tracking error (``info["tracking_error"]``).
 per rad, w6 = 300 per m (the reference implementation's surgery reward works in metres),
 written as a potential of the current tip state, plus a penalty per unsafe step:
 
-    Phi(p, theta) = -w5 theta + { -w4 |p - p_l|                if p in C_free
-                                { w6 (l - |p|)                 if p in C_drill
-                                { -w4 |p - p_l| - w6 l         if p is unsafe
+    Phi(p, theta) = -w5 theta + { w6 (l - |p|)                 if p in C_drill
+                                { -w4 |p - p_l|                otherwise (C_free, unsafe)
     r_t = Phi(p_t+1, theta_t+1) - Phi(p_t, theta_t) - unsafe_penalty c_t
 
 theta is the angle between the drill axis z_D and z_G (the drill is symmetric about its axis).
@@ -48,15 +47,19 @@ within C_drill the paper's w6 (|p_t| - |p_t+1|) + w5 (...); the two agree at p_l
 **Deviation from the paper** (DESIGN.md §5, amended): the paper pays 0 outside the safe set.
 That makes leaving free, and with the drill's reach a constant "push along the drill axis"
 ended its episodes outside the safe set with +1.22 (another seed set: +0.69), more than
-standing still (0); the reference avoided the trap with dense shaping everywhere. Here an
-unsafe state is worth w6 l = 15 (the whole insertion reward) less than the C_free formula, so
-leaving the safe set gives back everything inside it earned, and each unsafe step costs
+standing still (0); the reference avoided the trap with dense shaping everywhere. Here the
+unsafe region keeps the C_free formula's shaping toward p_l (the reference's dense term), so
+leaving the corridor gives back everything the insertion earned, and each unsafe step costs
 ``unsafe_penalty`` (0.1) more. Being paid for the current state (not the deepest point
 reached, as a guard on the paper's formula did before) means backing out of the corridor
 gives back what going in earned. Consequences, tested: no closed path earns reward (a
-potential), a policy that leaves the safe set and stays out earns less than standing still,
-unit-noise dithering earns less than standing still, reaching depth and backing out earns
-less than staying, and the expert's return is the largest of these.
+potential; a loop through the unsafe region loses 0.1 per unsafe step), pushing along the
+drill axis or leaving the corridor and staying out earns less than standing still, unit-noise
+dithering earns less than standing still, reaching depth and backing out earns less than
+staying, and the expert's return is the largest of these. The C_free side of the corridor's
+entrance has no step: a first version that valued unsafe states w6 l = 15 lower made every
+misaligned crossing of p_l's plane a cliff, and PPO (sigma 0.05, 5 mm noise against an 11 mm
+corridor) learned to hover above p_l (return 3.7, insertion error 55-60 mm, 0.5 M env steps).
 Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
 
 **Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
@@ -214,14 +217,13 @@ def surgery_potential(
     """Phi of tip states (see the module docstring): p (N, 3) m in {G}, theta (N,) rad, region
     (N,) FREE, DRILL or UNSAFE.
 
-    C_free: -w4 |p - p_l| - w5 theta; C_drill: w6 (l - |p|) - w5 theta (equal at p_l);
-    unsafe: -w4 |p - p_l| - w5 theta - w6 l, below every safe state near the corridor."""
+    C_drill: w6 (l - |p|) - w5 theta; C_free and unsafe: -w4 |p - p_l| - w5 theta (the two
+    agree at p_l)."""
     p_l = torch.zeros_like(p)
     p_l[:, 2] = -skin_distance
     outside = -w4 * (p - p_l).norm(dim=-1)
     drill = w6 * (skin_distance - p.norm(dim=-1))
-    phi = torch.where(region == DRILL, drill, outside) - w5 * theta
-    return torch.where(region == UNSAFE, phi - w6 * skin_distance, phi)
+    return torch.where(region == DRILL, drill, outside) - w5 * theta
 
 
 def surgery_reward(

@@ -270,10 +270,12 @@ def quantize(images: np.ndarray, key: str = "image") -> np.ndarray:
             f"{key}: images must be uint8 or float in [0, 1], got {images.dtype}"
         )
     x = images.astype(np.float32, copy=False)
-    if not np.isfinite(x).all() or x.min(initial=0.0) < 0.0 or x.max(initial=0.0) > 1.0:
+    if not np.isfinite(x).all():
+        raise DatasetFormatError(f"{key}: NaN or inf in the float images; they must lie in [0, 1]")
+    if x.min(initial=0.0) < 0.0 or x.max(initial=0.0) > 1.0:
         raise DatasetFormatError(
-            f"{key}: float images must lie in [0, 1] without NaN (range "
-            f"[{np.nanmin(x):.4g}, {np.nanmax(x):.4g}]); clip them before writing"
+            f"{key}: float images must lie in [0, 1] (range [{x.min():.4g}, {x.max():.4g}]); "
+            "clip them before writing"
         )
     return np.rint(x * 255.0).astype(np.uint8)
 

@@ -96,6 +96,7 @@ class ILTrainResult:
     steps: int  # optimiser steps done in total
     loss: float  # mean training loss over the last log interval
     seconds: float  # wall time of this call's training loop
+    history: tuple[tuple[int, float], ...]  # (step, mean loss of the interval) per log
 
 
 def _lr_lambda(policy: str, config, total: int):
@@ -216,6 +217,7 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     sums: dict[str, float] = {}
     n_sum = 0
     last_loss = float("nan")
+    history: list[tuple[int, float]] = []
     t0 = time.perf_counter()
     bar = tqdm(
         total=cfg.steps, initial=start, disable=not cfg.progress, desc=f"il-train {cfg.policy}"
@@ -241,6 +243,7 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
                     tb.add_scalar(f"train/{k}", v, step)
                 tb.add_scalar("train/lr", sched.get_last_lr()[0], step)
                 last_loss = means["loss"]
+                history.append((step, last_loss))
                 bar.set_postfix(loss=f"{last_loss:.4f}")
                 sums, n_sum = {}, 0
             if step % cfg.save_every == 0 or step == cfg.steps:
@@ -259,4 +262,4 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     finally:
         bar.close()
         tb.close()
-    return ILTrainResult(out, step, last_loss, time.perf_counter() - t0)
+    return ILTrainResult(out, step, last_loss, time.perf_counter() - t0, tuple(history))

@@ -1,0 +1,139 @@
+"""IL run folders: policy factory, atomic checkpoints, and loading a trained model back.
+
+A run folder (written by ``sonogym.imitation.train.train_il``)::
+
+    RUN/config.json                       resolved config: policy name and config, training
+                                          settings, dataset path and features, stats used
+    RUN/checkpoints/step_000005000.pt     {"model", "optimizer", "scheduler", "step", "rng"}:
+                                          plain state_dicts, loadable with weights_only=True
+    RUN/tb/                               TensorBoard scalars
+
+Every file is written to a temp name and renamed, so a killed run never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sonogym.imitation import act, diffusion
+from sonogym.imitation.lerobot_format import atomic_write_json
+from sonogym.imitation.processor import PolicyFeatures
+
+POLICIES = ("act", "diffusion")
+RUN_KIND = "sonogym-il-run"
+_CKPT = re.compile(r"step_(\d+)\.pt$")
+
+
+def make_config(policy: str, preset: str = "cpu", **overrides):
+    """The ``paper`` or ``cpu`` preset config of ``policy`` ("act" or "diffusion")."""
+    cls = {"act": act.ACTConfig, "diffusion": diffusion.DiffusionConfig}.get(policy)
+    if cls is None:
+        raise ValueError(f"unknown policy {policy!r}; choose one of {POLICIES}")
+    if preset not in ("paper", "cpu"):
+        raise ValueError(f"unknown preset {preset!r}; choose 'paper' or 'cpu'")
+    return getattr(cls, preset)(**overrides)
+
+
+def policy_name(config) -> str:
+    if isinstance(config, act.ACTConfig):
+        return "act"
+    if isinstance(config, diffusion.DiffusionConfig):
+        return "diffusion"
+    raise TypeError(f"not an IL policy config: {type(config).__name__}")
+
+
+def make_policy(config, features: PolicyFeatures, stats) -> torch.nn.Module:
+    """ACTPolicy or DiffusionPolicy for ``config`` over ``features``, normalised by ``stats``."""
+    if isinstance(config, act.ACTConfig):
+        return act.ACTPolicy(config, features, stats)
+    if isinstance(config, diffusion.DiffusionConfig):
+        return diffusion.DiffusionPolicy(config, features, stats)
+    raise TypeError(f"not an IL policy config: {type(config).__name__}")
+
+
+def config_from_dict(policy: str, d: dict[str, Any]):
+    if policy == "act":
+        return act.config_from_dict(d)
+    if policy == "diffusion":
+        return diffusion.config_from_dict(d)
+    raise ValueError(f"unknown policy {policy!r} in a run config; known: {POLICIES}")
+
+
+def checkpoints(run: str | Path) -> list[tuple[int, Path]]:
+    """(step, path) of the run's checkpoints, oldest first."""
+    found = []
+    for p in (Path(run) / "checkpoints").glob("step_*.pt"):
+        m = _CKPT.search(p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def save_checkpoint(run: Path, step: int, state: dict[str, Any]) -> Path:
+    path = Path(run) / "checkpoints" / f"step_{step:09d}.pt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    with open(tmp, "rb+") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
+    """A checkpoint's dict, loaded with ``weights_only=True`` (tensors and plain containers)."""
+    return torch.load(path, map_location=device, weights_only=True)
+
+
+def write_run_config(run: Path, cfg: dict[str, Any]) -> None:
+    atomic_write_json(Path(run) / "config.json", {"kind": RUN_KIND, **cfg})
+
+
+def read_run_config(run: str | Path) -> dict[str, Any]:
+    path = Path(run) / "config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found: is {run} a `sonogym il-train` run folder?")
+    cfg = json.loads(path.read_text())
+    if cfg.get("kind") != RUN_KIND:
+        raise ValueError(f"{path} is not an IL run config (kind {cfg.get('kind')!r})")
+    return cfg
+
+
+def load_model(
+    run: str | Path,
+    device: str | torch.device = "cpu",
+    checkpoint: str | Path | None = None,
+    **config_overrides,
+) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """(model in eval mode, run config) from a run folder, newest checkpoint unless given.
+
+    ``config_overrides`` change inference-only settings (``temporal_ensemble_coeff``,
+    ``n_action_steps``, ``scheduler``, ``num_inference_steps``); the dataset is not needed
+    (the normalisation statistics come from config.json and the checkpoint).
+    """
+    cfg = read_run_config(run)
+    config = config_from_dict(cfg["policy"], cfg["policy_config"])
+    if config_overrides:
+        config = dataclasses.replace(config, **config_overrides)
+    features = PolicyFeatures.from_dict(cfg["features"])
+    stats = {
+        k: {s: torch.tensor(v, dtype=torch.float32) for s, v in d.items()}
+        for k, d in cfg["stats"].items()
+    }
+    model = make_policy(config, features, stats).to(device)
+    if checkpoint is None:
+        found = checkpoints(run)
+        if not found:
+            raise FileNotFoundError(f"no checkpoints/step_*.pt in {run}")
+        checkpoint = found[-1][1]
+    state = load_checkpoint(checkpoint, device)
+    model.load_state_dict(state["model"])
+    model.eval()
+    return model, cfg

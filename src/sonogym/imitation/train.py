@@ -1,0 +1,265 @@
+"""Train ACT or Diffusion Policy on a LeRobotDataset v3.0 folder (``train_il``).
+
+One input, ``ILTrainConfig``. The run folder layout and checkpoint format: ``run.py``.
+Samples: random frames of the dataset (with replacement across epochs, reshuffled each epoch)
+with the policy's observation history and action chunk (``delta_indices``); Diffusion Policy
+leaves the last ``horizon - n_action_steps - n_obs_steps + 1`` frames of each episode out as
+samples (LeRobot's sampler). Optimiser, learning-rate schedule, gradient clip and
+normalisation come from the policy config (LeRobot's choices: ACT AdamW at a constant rate,
+DP Adam with linear warm-up then cosine decay to 0 over ``steps``).
+
+Determinism: one seed drives the model's initialisation, the sample order and the model's own
+noise (VAE sampling, diffusion noise, random crops). ``resume=True`` restores weights,
+optimiser, schedule and generators from the newest checkpoint; the data order after a resume
+differs from an uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sonogym.imitation import run as runio
+from sonogym.imitation.lerobot_format import read_info
+from sonogym.imitation.processor import PolicyFeatures, stats_subset
+from sonogym.imitation.reader import LeRobotFrames, load_stats
+
+
+@dataclass(frozen=True)
+class ILTrainConfig:
+    """Everything ``train_il`` needs.
+
+    data: LeRobotDataset v3.0 folder.
+    out: run folder (refused if it exists, unless ``resume`` or ``force``).
+    policy: "act" or "diffusion".
+    policy_config: an ``ACTConfig`` / ``DiffusionConfig``; None: the ``preset`` of ``policy``.
+    preset: "cpu" or "paper" (used when ``policy_config`` is None).
+    steps: optimiser steps in total, resumed ones included (>= 1).
+    batch_size: samples per step (the reference: 8).
+    seed: seed of initialisation, sample order and the model's noise.
+    device: torch device of the model and batches ("cpu", "cuda", ...).
+    resume: continue from the newest checkpoint in ``out``.
+    force: delete an existing run folder ``out`` first.
+    save_every: steps between checkpoints (a final one is always written).
+    log_every: steps between TensorBoard scalars.
+    num_workers: DataLoader worker processes (0: load in the training process).
+    image_cache: the reader's image cache, "bytes" or "decoded" (see ``LeRobotFrames``).
+    episodes: episode indices to train on (None: all).
+    progress: show a tqdm progress bar.
+    """
+
+    data: str
+    out: str
+    policy: str = "act"
+    policy_config: Any = None
+    preset: str = "cpu"
+    steps: int = 10_000
+    batch_size: int = 8
+    seed: int = 1000
+    device: str = "cpu"
+    resume: bool = False
+    force: bool = False
+    save_every: int = 5_000
+    log_every: int = 100
+    num_workers: int = 0
+    image_cache: str = "bytes"
+    episodes: tuple[int, ...] | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.policy not in runio.POLICIES:
+            raise ValueError(f"policy {self.policy!r} unknown; choose one of {runio.POLICIES}")
+        if self.policy_config is not None and runio.policy_name(self.policy_config) != self.policy:
+            raise ValueError(
+                f"policy {self.policy!r} with a {type(self.policy_config).__name__}: they differ"
+            )
+        if self.steps < 1 or self.batch_size < 1 or self.save_every < 1 or self.log_every < 1:
+            raise ValueError("steps, batch_size, save_every and log_every must be >= 1")
+        if self.resume and self.force:
+            raise ValueError("resume and force exclude each other")
+
+    def resolved_policy_config(self):
+        return self.policy_config or runio.make_config(self.policy, self.preset)
+
+
+@dataclass(frozen=True)
+class ILTrainResult:
+    run: Path
+    steps: int  # optimiser steps done in total
+    loss: float  # mean training loss over the last log interval
+    seconds: float  # wall time of this call's training loop
+    history: tuple[tuple[int, float], ...]  # (step, mean loss of the interval) per log
+
+
+def _lr_lambda(policy: str, config, total: int):
+    if policy == "act":
+        return lambda step: 1.0
+    warm = config.lr_warmup_steps
+
+    def f(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        progress = (step - warm) / max(1, total - warm)
+        return max(0.0, 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
+
+    return f
+
+
+def _prepare_out(cfg: ILTrainConfig) -> tuple[Path, list[tuple[int, Path]]]:
+    out = Path(cfg.out)
+    if out.exists() and any(out.iterdir()):
+        is_run = (out / "config.json").exists()
+        if cfg.force:
+            if not is_run:
+                raise FileExistsError(
+                    f"{out} is not empty and holds no run config.json; refusing to delete it"
+                )
+            shutil.rmtree(out)
+        elif not cfg.resume:
+            raise FileExistsError(
+                f"{out} already holds a run; pass resume=True (--resume) to continue it or "
+                "force=True (--force) to replace it"
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    found = runio.checkpoints(out) if cfg.resume else []
+    return out, found
+
+
+def train_il(cfg: ILTrainConfig) -> ILTrainResult:
+    """Train (or resume) an IL policy; see the module doc. Returns the run folder and totals."""
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
+    pcfg = cfg.resolved_policy_config()
+    out, found = _prepare_out(cfg)
+    data = Path(cfg.data).resolve()
+    info = read_info(data)
+    stats = load_stats(data)
+    features = PolicyFeatures.from_info(info["features"])
+    dev = torch.device(cfg.device)
+
+    torch.manual_seed(cfg.seed)
+    model = runio.make_policy(pcfg, features, stats).to(dev)
+    model.train()
+    opt = model.optimizer()
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(cfg.policy, pcfg, cfg.steps))
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
+    loader_gen = torch.Generator().manual_seed(cfg.seed + 2)
+
+    run_cfg = {
+        "policy": cfg.policy,
+        "policy_config": dataclasses.asdict(pcfg),
+        "train": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "policy_config"},
+        "dataset": {
+            "root": str(data),
+            "codebase_version": info["codebase_version"],
+            "fps": info["fps"],
+            "total_episodes": info["total_episodes"],
+            "total_frames": info["total_frames"],
+            "features": info["features"],
+        },
+        "features": features.to_dict(),
+        "normalization": dict(model.normalizer.modes),
+        "stats": stats_subset(stats, features.keys),
+        "versions": {"torch": torch.__version__},
+    }
+    run_cfg = json.loads(json.dumps(run_cfg))  # the form config.json holds (tuples as lists)
+    start = 0
+    if found:
+        old = runio.read_run_config(out)
+        if old["policy"] != cfg.policy or old["policy_config"] != run_cfg["policy_config"]:
+            raise ValueError(f"{out} was trained with another policy config; cannot resume it")
+        if old["features"] != run_cfg["features"]:
+            raise ValueError(f"{out} was trained on other features; cannot resume it")
+        state = runio.load_checkpoint(found[-1][1], dev)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        gen.set_state(state["rng"]["model"].cpu())
+        loader_gen.set_state(state["rng"]["loader"].cpu())
+        start = int(state["step"])
+    runio.write_run_config(out, run_cfg)
+
+    ds = LeRobotFrames(
+        data,
+        delta_indices=pcfg.delta_indices(features),
+        episodes=None if cfg.episodes is None else list(cfg.episodes),
+        drop_n_last_frames=pcfg.drop_n_last_frames,
+        image_cache=cfg.image_cache,
+    )
+    if len(ds) == 0:
+        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
+    loader = torch.utils.data.DataLoader(
+        ds,
+        batch_size=cfg.batch_size,
+        shuffle=True,
+        drop_last=len(ds) >= cfg.batch_size,
+        num_workers=cfg.num_workers,
+        generator=loader_gen,
+        pin_memory=dev.type == "cuda",
+        persistent_workers=cfg.num_workers > 0,
+    )
+
+    def batches():
+        while True:
+            yield from loader
+
+    tb = SummaryWriter(str(out / "tb"))
+    it = batches()
+    sums: dict[str, float] = {}
+    n_sum = 0
+    last_loss = float("nan")
+    history: list[tuple[int, float]] = []
+    t0 = time.perf_counter()
+    bar = tqdm(
+        total=cfg.steps, initial=start, disable=not cfg.progress, desc=f"il-train {cfg.policy}"
+    )
+    step = start
+    try:
+        while step < cfg.steps:
+            batch = {k: v.to(dev, non_blocking=True) for k, v in next(it).items()}
+            loss, logs = model.compute_loss(batch, gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            grad = torch.nn.utils.clip_grad_norm_(model.parameters(), pcfg.grad_clip_norm)
+            opt.step()
+            sched.step()
+            step += 1
+            logs = {"loss": float(loss.detach()), "grad_norm": float(grad), **logs}
+            for k, v in logs.items():
+                sums[k] = sums.get(k, 0.0) + v
+            n_sum += 1
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                means = {k: v / n_sum for k, v in sums.items()}
+                for k, v in means.items():
+                    tb.add_scalar(f"train/{k}", v, step)
+                tb.add_scalar("train/lr", sched.get_last_lr()[0], step)
+                last_loss = means["loss"]
+                history.append((step, last_loss))
+                bar.set_postfix(loss=f"{last_loss:.4f}")
+                sums, n_sum = {}, 0
+            if step % cfg.save_every == 0 or step == cfg.steps:
+                runio.save_checkpoint(
+                    out,
+                    step,
+                    {
+                        "model": model.state_dict(),
+                        "optimizer": opt.state_dict(),
+                        "scheduler": sched.state_dict(),
+                        "step": step,
+                        "rng": {"model": gen.get_state(), "loader": loader_gen.get_state()},
+                    },
+                )
+            bar.update(1)
+    finally:
+        bar.close()
+        tb.close()
+    return ILTrainResult(out, step, last_loss, time.perf_counter() - t0, tuple(history))

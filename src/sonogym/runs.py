@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 
 class OutputExistsError(FileExistsError):
@@ -47,20 +49,34 @@ def prepare_output(path: str | Path, resume: bool, force: bool, what: str = "run
     )
 
 
-def _temporary(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+_TEMPORARY = re.compile(r"\.tmp(\d+)$")
+
+
+def temporary_path(path: Path) -> Path:
+    """Where ``path`` is written before its rename: ``<name>.tmp<pid>`` beside it (globs for
+    ``*.parquet``, ``*.pt``, ``*.json`` never see it)."""
+    return path.with_name(f"{path.name}.tmp{os.getpid()}")
+
+
+def atomic_write(path: str | Path, write: Callable[[BinaryIO], Any]) -> Path:
+    """``write(file)`` into ``temporary_path(path)``, fsync, then rename it over ``path``
+    (parent folders are created)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file and a rename."""
-    path = Path(path)
-    tmp = _temporary(path)
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, lambda f: f.write(data))
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
@@ -68,21 +84,35 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 def atomic_write_json(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=indent))
+    return atomic_write_text(path, json.dumps(obj, indent=indent, ensure_ascii=False) + "\n")
 
 
 def atomic_torch_save(obj: Any, path: str | Path) -> Path:
     """``torch.save`` through a temporary file and a rename."""
     import torch
 
-    path = Path(path)
-    tmp = _temporary(path)
-    try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def remove_stale_temporaries(folder: str | Path, recursive: bool = False) -> int:
+    """Delete ``*.tmp<pid>`` files in ``folder`` whose writer process no longer exists (a killed
+    write's leftovers; a live writer's file is left alone). Returns how many went."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    removed = 0
+    for f in folder.rglob("*") if recursive else folder.iterdir():
+        m = _TEMPORARY.search(f.name)
+        if m is None or not f.is_file() or int(m.group(1)) == os.getpid():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:  # the writer is dead: its file will never be renamed
+            f.unlink(missing_ok=True)
+            removed += 1
+        except (PermissionError, OverflowError, OSError):
+            pass  # alive (another user's) or not a pid we can ask about: leave it
+    return removed
 
 
 def read_json(path: str | Path, what: str, required: tuple[str, ...] = ()) -> dict:

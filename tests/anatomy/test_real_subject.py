@@ -12,10 +12,8 @@ from sonogym.anatomy import LandmarkError, load_totalsegmentator
 from sonogym.anatomy import labels as L
 from sonogym.anatomy import landmarks as LM
 
-SUBJECT = Path(__file__).resolve().parents[3] / "shared" / "data" / "totalsegmentator_example"
+SUBJECT = Path(__file__).resolve().parents[1] / "data" / "totalsegmentator_example"
 LEVELS = ("L1", "L2", "L3", "L4", "L5")
-
-pytestmark = pytest.mark.skipif(not SUBJECT.is_dir(), reason="shared real subject not present")
 
 
 @pytest.fixture(scope="module")

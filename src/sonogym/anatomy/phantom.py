@@ -21,7 +21,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from sonogym.anatomy.sdf import (
     smooth_union,
     superellipse2,
 )
+from sonogym.runs import atomic_write, atomic_write_json, remove_stale_temporaries
 
 #: Bump when the generator's output changes, so stale cache entries are not reused.
 GENERATOR_VERSION = 1
@@ -660,7 +660,7 @@ def load_phantom(
         return make_phantom(seed, params)
     folder = cache_dir() if cache is True else Path(cache)
     stem = folder / f"phantom-{seed}-{phantom_cache_key(seed, params)}"
-    _clean_stale_temporaries(folder)
+    remove_stale_temporaries(folder)
     if stem.with_suffix(".json").exists() or stem.with_suffix(".npz").exists():
         try:
             return _read_entry(stem)
@@ -687,19 +687,6 @@ def _digest(arrays: dict[str, np.ndarray], info: dict) -> str:
     return h.hexdigest()
 
 
-def _atomic_write(path: Path, write) -> None:
-    """``write(file)`` into a temporary file beside ``path``, then rename it into place."""
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _write_entry(stem: Path, patient: Patient) -> None:
     arrays = {"ct": patient.ct.to(torch.int16).numpy(), "labels": patient.labels.numpy()}
     info = {
@@ -710,8 +697,8 @@ def _write_entry(stem: Path, patient: Patient) -> None:
     }
     info = json.loads(json.dumps(info, default=str))  # what the sidecar will hold, exactly
     side = {**info, "sha256": _digest(arrays, info)}
-    _atomic_write(stem.with_suffix(".npz"), lambda f: np.savez(f, **arrays))
-    _atomic_write(stem.with_suffix(".json"), lambda f: f.write(json.dumps(side).encode()))
+    atomic_write(stem.with_suffix(".npz"), lambda f: np.savez(f, **arrays))
+    atomic_write_json(stem.with_suffix(".json"), side, indent=None)
 
 
 def _read_entry(stem: Path) -> Patient:
@@ -728,22 +715,3 @@ def _read_entry(stem: Path) -> Patient:
         name=side["name"],
         meta=side["meta"],
     )
-
-
-_TMP = re.compile(r"^phantom-.*\.tmp(\d+)$")
-
-
-def _clean_stale_temporaries(folder: Path) -> None:
-    """Remove ``phantom-*.tmp<pid>`` files whose writer process no longer exists."""
-    if not folder.is_dir():
-        return
-    for f in folder.iterdir():
-        m = _TMP.match(f.name)
-        if m is None or int(m.group(1)) == os.getpid():
-            continue
-        try:
-            os.kill(int(m.group(1)), 0)
-        except ProcessLookupError:  # the writer is dead: its file will never be renamed
-            f.unlink(missing_ok=True)
-        except (PermissionError, OverflowError, OSError):
-            pass  # alive (another user's) or not a pid we can ask about: leave it

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +50,6 @@ DEFAULT_CHUNKS_SIZE = 1000
 DEFAULT_DATA_FILES_SIZE_IN_MB = 100
 DEFAULT_VIDEO_FILES_SIZE_IN_MB = 200  # written for completeness; no videos here
 #: Suffix of files being written; never matched by LeRobot's ``*/*.parquet`` glob.
-TMP_SUFFIX = ".tmp"
 
 #: The bookkeeping columns every frame has (LeRobot's DEFAULT_FEATURES).
 DEFAULT_FEATURES: dict[str, dict[str, Any]] = {
@@ -241,21 +239,6 @@ def read_info(root: str | Path) -> dict[str, Any]:
             f"{root}: video features are not supported by this reader (images only)"
         )
     return info
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file, fsync and rename: readers see old or new."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + TMP_SUFFIX)
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def atomic_write_json(path: Path, obj: Any) -> None:
-    atomic_write_bytes(path, (json.dumps(obj, indent=4, ensure_ascii=False) + "\n").encode())
 
 
 # --- frames ---------------------------------------------------------------------------------

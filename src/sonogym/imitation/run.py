@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
 from pathlib import Path
 from typing import Any
@@ -23,8 +22,8 @@ from typing import Any
 import torch
 
 from sonogym.imitation import act, diffusion
-from sonogym.imitation.lerobot_format import atomic_write_json
 from sonogym.imitation.processor import PolicyFeatures
+from sonogym.runs import atomic_torch_save, atomic_write_json
 
 POLICIES = ("act", "diffusion")
 RUN_KIND = "sonogym-il-run"
@@ -77,14 +76,8 @@ def checkpoints(run: str | Path) -> list[tuple[int, Path]]:
 
 
 def save_checkpoint(run: Path, step: int, state: dict[str, Any]) -> Path:
-    path = Path(run) / "checkpoints" / f"step_{step:09d}.pt"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    with open(tmp, "rb+") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    """The run's checkpoint after ``step`` optimiser steps, written atomically."""
+    return atomic_torch_save(state, Path(run) / "checkpoints" / f"step_{step:09d}.pt")
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
@@ -93,7 +86,7 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
 
 
 def write_run_config(run: Path, cfg: dict[str, Any]) -> None:
-    atomic_write_json(Path(run) / "config.json", {"kind": RUN_KIND, **cfg})
+    atomic_write_json(Path(run) / "config.json", {"kind": RUN_KIND, **cfg}, indent=4)
 
 
 def read_run_config(run: str | Path) -> dict[str, Any]:

@@ -5,13 +5,14 @@ Layout and quantisation: ``sonogym.imitation.lerobot_format``. Statistics:
 
 Safety:
 
-* Each episode lands whole or not at all. Every file is written to ``<name>.tmp``, fsynced and
-  renamed over its target; LeRobot's ``*/*.parquet`` glob never sees a ``.tmp`` file.
+* Each episode lands whole or not at all. Every file is written to ``<name>.tmp<pid>``, fsynced
+  and renamed over its target (``sonogym.runs.atomic_write``); LeRobot's ``*/*.parquet`` glob
+  never sees a temporary file.
 * The order of an episode's commit is: data file, then ``meta/episodes`` file, ``tasks.parquet``,
   ``stats.json``, and last ``info.json``, whose ``total_episodes`` is the commit point. A writer
   killed anywhere in between leaves a folder that both readers read as the episodes before
   (rows past ``total_frames`` are ignored), and ``resume=True`` drops the uncommitted rest
-  (orphan data rows and episode rows, ``.tmp`` files) and continues with the next index: no
+  (orphan data rows and episode rows, temporary files) and continues with the next index: no
   duplicate or missing episode or frame index.
 * An existing dataset folder is refused unless ``resume=True`` (append) or ``force=True``
   (delete and start over; refused for a non-empty folder that is not a dataset).
@@ -25,7 +26,6 @@ size, never by the dataset's. ``meta/episodes`` files hold up to 1000 episodes e
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
@@ -37,6 +37,12 @@ import pyarrow.parquet as pq
 
 from sonogym.imitation import dataset_stats as st
 from sonogym.imitation import lerobot_format as fmt
+from sonogym.runs import (
+    atomic_write,
+    atomic_write_bytes,
+    atomic_write_json,
+    remove_stale_temporaries,
+)
 
 EPISODES_PER_META_FILE = 1000
 
@@ -49,19 +55,17 @@ def _to_numpy(x: Any) -> np.ndarray:
 
 def _write_parquet(path: Path, tables: list[pa.Table], schema: pa.Schema, image_cols: list[str]):
     """Atomically write ``tables`` (one row group each) to ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + fmt.TMP_SUFFIX)
     # PNG bytes do not compress: store them plain, compress the small numeric columns.
     compression = {f.name: ("none" if f.name in image_cols else "snappy") for f in schema}
     dictionary = [f.name for f in schema if f.name not in image_cols]
-    with open(tmp, "wb") as fh:
+
+    def write(fh) -> None:
         writer = pq.ParquetWriter(fh, schema, compression=compression, use_dictionary=dictionary)
         for t in tables:
             writer.write_table(t.cast(schema), row_group_size=max(len(t), 1))
         writer.close()
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+
+    atomic_write(path, write)
 
 
 def _tasks_table(tasks: list[str]) -> pa.Table:
@@ -109,7 +113,7 @@ def _tasks_table(tasks: list[str]) -> pa.Table:
 def _write_tasks(root: Path, tasks: list[str]) -> None:
     sink = pa.BufferOutputStream()
     pq.write_table(_tasks_table(tasks), sink)
-    fmt.atomic_write_bytes(Path(root) / fmt.TASKS_PATH, sink.getvalue().to_pybytes())
+    atomic_write_bytes(Path(root) / fmt.TASKS_PATH, sink.getvalue().to_pybytes())
 
 
 def read_tasks(root: Path) -> list[str]:
@@ -239,7 +243,7 @@ class DatasetWriter:
             self._data_file_eps = 0  # episodes in the current data file
             self._agg = st.StatsAggregator()
             self.root.mkdir(parents=True, exist_ok=True)
-            fmt.atomic_write_json(self.root / fmt.INFO_PATH, self.info)
+            atomic_write_json(self.root / fmt.INFO_PATH, self.info, indent=4)
 
     # --- public -----------------------------------------------------------------------------
 
@@ -401,7 +405,7 @@ class DatasetWriter:
         agg = st.StatsAggregator()
         agg._acc = {k: dict(v) for k, v in self._agg._acc.items()}  # commit only on success
         agg.add(stats)
-        fmt.atomic_write_json(self.root / fmt.STATS_PATH, st.to_json(agg.result()))
+        atomic_write_json(self.root / fmt.STATS_PATH, st.to_json(agg.result()), indent=4)
         info = dict(self.info)
         info["total_episodes"] = ep + 1
         info["total_frames"] = self.num_frames + length
@@ -412,7 +416,7 @@ class DatasetWriter:
         self.info, self.tasks, self._agg, self._meta_rows = info, list(new_tasks), agg, rows
 
     def _write_info(self, info: dict[str, Any]) -> None:
-        fmt.atomic_write_json(self.root / fmt.INFO_PATH, info)
+        atomic_write_json(self.root / fmt.INFO_PATH, info, indent=4)
 
     # --- resume -----------------------------------------------------------------------------
 
@@ -432,8 +436,7 @@ class DatasetWriter:
                 f"{self.root}: robot_type {info.get('robot_type')!r}, not {robot_type!r}"
             )
         n, total = int(info["total_episodes"]), int(info["total_frames"])
-        for tmp in self.root.rglob("*" + fmt.TMP_SUFFIX):
-            tmp.unlink()
+        remove_stale_temporaries(self.root, recursive=True)
         # meta/episodes: keep rows < n, rewrite files holding later rows
         rows: list[dict[str, Any]] = []
         for path in sorted((self.root / fmt.EPISODES_DIR).glob("*/*.parquet")):
@@ -503,7 +506,7 @@ class DatasetWriter:
                 if r["meta/episodes/chunk_index"] * cs + r["meta/episodes/file_index"]
                 == self._meta_file_no
             ]
-            fmt.atomic_write_json(self.root / fmt.STATS_PATH, st.to_json(self._agg.result()))
+            atomic_write_json(self.root / fmt.STATS_PATH, st.to_json(self._agg.result()), indent=4)
         else:
             self._data_file_no = self._data_file_eps = self._meta_file_no = 0
             self._meta_rows = []

@@ -133,3 +133,29 @@ def read_json(path: str | Path, what: str, required: tuple[str, ...] = ()) -> di
     if missing:
         raise ValueError(f"{path} lacks {missing}: it was not written by this {what} writer")
     return obj
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Dataclasses, paths, tuples -> JSON-serialisable values (for configs written to disk)."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, int | float | str | bool) or obj is None:
+        return obj
+    return repr(obj)
+
+
+def lists_to_tuples(x: Any) -> Any:
+    """JSON lists back to the tuples configs hold, recursively (dict values too)."""
+    if isinstance(x, list | tuple):
+        return tuple(lists_to_tuples(v) for v in x)
+    if isinstance(x, dict):
+        return {k: lists_to_tuples(v) for k, v in x.items()}
+    return x

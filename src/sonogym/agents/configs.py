@@ -31,6 +31,7 @@ import torch
 
 from sonogym.envs.registry import check_algo, get_task
 from sonogym.envs.spec import A2CParams, PPOParams, SafetyParams
+from sonogym.runs import lists_to_tuples, to_jsonable
 
 __all__ = ["A2CParams", "PPOParams", "TaskRLConfig", "build_agent", "task_config", "to_jsonable"]
 
@@ -50,6 +51,7 @@ class TaskRLConfig:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # initial log sigma of the Gaussian policy, action units
+    init_mean_gain: float = 1.0  # factor on the mean head's initial weights
     standardize_vectors: bool = False  # running standardisation of vector observations
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
@@ -66,20 +68,22 @@ class TaskRLConfig:
         return self.a2c if algo == "a2c" else self.ppo
 
 
-def task_config(task: str, **overrides) -> TaskRLConfig:
+def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
     """The task's registry defaults as a ``TaskRLConfig``, with fields replaced
-    (``dataclasses.replace`` semantics); an unknown task names the known ones."""
+    (``dataclasses.replace`` semantics); an unknown task names the known ones. ``preset``
+    "cpu" takes the task's CPU PPO table where it has one (``TrainingDefaults.ppo_cpu``)."""
     t = get_task(task).training
     safety = t.safety or SafetyParams()
     base = TaskRLConfig(
         task=task,
-        ppo=t.ppo,
+        ppo=t.ppo_cpu if (preset == "cpu" and t.ppo_cpu is not None) else t.ppo,
         a2c=t.a2c,
         timesteps=t.timesteps,
         num_envs=t.num_envs,
         obs_scales=dict(t.obs_scales),
         reward_scale=t.reward_scale,
         init_log_std=t.init_log_std,
+        init_mean_gain=t.init_mean_gain,
         standardize_vectors=t.standardize_vectors,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,
@@ -165,7 +169,7 @@ class TrainConfig:
         tc["ppo"] = PPOParams(**tc["ppo"])
         tc["a2c"] = A2CParams(**tc["a2c"])
         tc["pid_gains"] = tuple(tc["pid_gains"])
-        tc["env_kwargs"] = _tuples(tc.get("env_kwargs", {}))
+        tc["env_kwargs"] = lists_to_tuples(tc.get("env_kwargs", {}))
         names = {f.name for f in dataclasses.fields(TaskRLConfig)}
         rl = TaskRLConfig(**{k: v for k, v in tc.items() if k in names})
         return cls(
@@ -207,13 +211,14 @@ def resolve_train_config(
     defaults = get_task(task).training
     rl = task_config(
         task,
+        p.name,
         num_envs=p.num_envs,
         net=p.net,
         obs_downsample=p.obs_downsample(defaults.image_height),
     )
     given = {"num_envs": envs, "timesteps": steps, "net": net, "obs_downsample": obs_downsample}
     rl = dataclasses.replace(rl, **{k: v for k, v in given.items() if v is not None})
-    rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, **_tuples(env_kwargs or {})})
+    rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, **lists_to_tuples(env_kwargs or {})})
     return TrainConfig(
         task=task,
         algo=algo,
@@ -248,9 +253,9 @@ def resume_config(saved: TrainConfig, **explicit: Any) -> TrainConfig:
         if k in RESUMABLE_OPTIONS:
             continue
         if k == "env_kwargs":
-            for ek, ev in _tuples(v).items():
+            for ek, ev in lists_to_tuples(v).items():
                 old = saved.rl.env_kwargs.get(ek, _env_default(saved.task, ek))
-                if _tuples(ev) != old:
+                if lists_to_tuples(ev) != old:
                     conflicts.append(f"{ek} {ev!r} (run: {old!r})")
         elif k == "preset":
             if v not in ("auto", saved.preset):
@@ -281,17 +286,8 @@ def _env_default(task: str, key: str) -> Any:
     cls = get_task(task).config_cls
     for f in dataclasses.fields(cls):
         if f.name == key:
-            return _tuples(f.default) if f.default is not dataclasses.MISSING else None
+            return lists_to_tuples(f.default) if f.default is not dataclasses.MISSING else None
     raise ValueError(f"unknown {task} env option {key!r}")
-
-
-def _tuples(x: Any) -> Any:
-    """Lists (as JSON gives them) to tuples, recursively, as the configs hold them."""
-    if isinstance(x, list | tuple):
-        return tuple(_tuples(v) for v in x)
-    if isinstance(x, dict):
-        return {k: _tuples(v) for k, v in x.items()}
-    return x
 
 
 class RewardScale:
@@ -389,18 +385,3 @@ def build_agent(
         device=device,
         cfg=agent_cfg,
     )
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Dataclasses / paths / tuples -> JSON-serialisable values (for the resolved config)."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, int | float | str | bool) or obj is None:
-        return obj
-    return repr(obj)

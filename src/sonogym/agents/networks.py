@@ -155,6 +155,7 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         device: str | torch.device | None = None,
         net: str = "paper",
         init_log_std: float = 0.0,
+        init_mean_gain: float = 1.0,
     ) -> None:
         init_flat_model(self, layout, action_space, device)
         GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, role="policy")
@@ -162,6 +163,9 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         self.encoder = Encoder(task, layout, net)
         n_act = int(action_space.shape[0])
         self.mean_head = nn.Linear(self.encoder.out_features, n_act)
+        with torch.no_grad():  # a small gain: the untrained policy stands nearly still
+            self.mean_head.weight.mul_(init_mean_gain)
+            self.mean_head.bias.mul_(init_mean_gain)
         self.log_std = nn.Parameter(torch.full((n_act,), float(init_log_std)))
         self.value_head = nn.Linear(self.encoder.out_features, 1)
         self._cache: tuple[torch.Tensor, bool, torch.Tensor] | None = None
@@ -199,7 +203,8 @@ def make_models(
     device=None,
     net: str = "paper",
     init_log_std: float = 0.0,
+    init_mean_gain: float = 1.0,
 ) -> dict[str, Model]:
     """skrl ``models`` dict: the same ``SharedActorCritic`` as "policy" and "value"."""
-    model = SharedActorCritic(task, layout, action_space, device, net, init_log_std)
+    model = SharedActorCritic(task, layout, action_space, device, net, init_log_std, init_mean_gain)
     return {"policy": model, "value": model}

@@ -74,6 +74,41 @@ class Feature:
 
 
 @dataclass(frozen=True)
+class DatasetPreset:
+    """One expert-dataset setting of the paper: its name, default episode count and the env
+    options it records with (simulator, nets, patients, start randomisation)."""
+
+    name: str
+    episodes: int
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """How a task's expert datasets look (LeRobotDataset v3.0, ``sonogym.imitation``).
+
+    ``features`` map the env's observation to dataset keys (the action is added as
+    ``action``); ``instruction`` is LeRobot's task string; ``fps`` the control rate the
+    timestamps count (steps per second); ``success(metrics)`` -> (N,) bool keeps the expert
+    episodes worth imitating (a failed one is counted, not written)."""
+
+    features: tuple[Feature, ...]
+    instruction: str
+    robot_type: str
+    fps: int
+    presets: tuple[DatasetPreset, ...]
+    success: Callable[[dict[str, torch.Tensor]], torch.Tensor]
+
+    def preset(self, name: str) -> DatasetPreset:
+        for p in self.presets:
+            if p.name == name:
+                return p
+        raise ValueError(
+            f"unknown dataset preset {name!r}; choose from {[p.name for p in self.presets]}"
+        )
+
+
+@dataclass(frozen=True)
 class Demo:
     """How ``sonogym demo`` shows a task: ``image(obs)`` env 0's 2-D image in [0, 1] for the
     frame sheet; ``frame(env, image, path)`` one RGB video frame (uint8 H x W x 3, sides
@@ -139,7 +174,7 @@ class TrainingDefaults:
     Gaussian policy's initial log standard deviation in action units (exploration)."""
 
     algos: tuple[str, ...]
-    ppo: PPOParams
+    ppo: PPOParams  # the paper's table
     a2c: A2CParams
     timesteps: int  # env steps per env (reference trainer timesteps)
     trunks: dict[str, ConvSpec]
@@ -148,6 +183,8 @@ class TrainingDefaults:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # log of sigma in action units
+    init_mean_gain: float = 1.0  # factor on the mean head's initial weights (0.01: acts ~0)
+    ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
     standardize_vectors: bool = False  # running standardisation of vector observations
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
     safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
@@ -158,8 +195,8 @@ class TaskSpec:
     """Everything the rest of the package knows about a task (see the module docstring).
 
     ``expert(env, info)`` is the privileged expert (navigation, surgery) or heuristic
-    (reconstruction), named by ``expert_label``; ``features`` is None for a task without an
-    imitation-learning dataset."""
+    (reconstruction), named by ``expert_label``; ``dataset`` is None for a task without
+    expert datasets for imitation learning."""
 
     name: str
     env_id: str
@@ -172,7 +209,7 @@ class TaskSpec:
     track: Track
     demo: Demo
     training: TrainingDefaults
-    features: tuple[Feature, ...] | None = None
+    dataset: DatasetSpec | None = None
 
     def metric(self, key: str) -> Metric:
         for m in self.metrics:

@@ -24,17 +24,9 @@ from typing import Any
 
 import torch
 
-from sonogym.runs import atomic_write_text
+from sonogym.runs import atomic_write_text, lists_to_tuples, to_jsonable
 
 CONTROLLERS = ("policy", "expert", "random")
-
-
-def _tuples(x: Any) -> Any:
-    if isinstance(x, list):
-        return tuple(_tuples(v) for v in x)
-    if isinstance(x, dict):
-        return {k: _tuples(v) for k, v in x.items()}
-    return x
 
 
 def evaluate_run(
@@ -83,7 +75,7 @@ def evaluate_run(
     seed = proto.seed if seed is None else seed
     if trials < 1:
         raise ValueError(f"trials must be >= 1, got {trials}")
-    train_env = _tuples(cfg["task_config"]["env_kwargs"])
+    train_env = lists_to_tuples(cfg["task_config"]["env_kwargs"])
     overrides = proto.test_env_overrides(train_env)
     clash = sorted(set(env_overrides or {}) & set(PROTOCOL_KEYS))
     if protocol is not None and clash:
@@ -115,7 +107,7 @@ def evaluate_run(
         "controllers": list(episodes),
         "checkpoint": Path(checkpoint).name,
         "train_env": cfg["task_config"]["env_kwargs"],
-        "test_env": _jsonable({**train_env, **overrides}),
+        "test_env": to_jsonable({**train_env, **overrides}),
         "track_columns": list(track.columns),
         "track_units": list(track.units),
     }
@@ -133,7 +125,7 @@ def evaluate_run(
         "trials": trials,
         "seed": seed,
         "protocol": name,
-        "env_overrides": _jsonable(overrides),
+        "env_overrides": to_jsonable(overrides),
         "results": results,
     }
     atomic_write_text(run / f"{stem}.json", json.dumps(table, indent=1))
@@ -183,7 +175,7 @@ def run_controllers(
 
     _, cfg = load_policy(run, checkpoint, device=device)  # checks the run folder early
     task = cfg["task"]
-    env_kwargs = {**_tuples(cfg["task_config"]["env_kwargs"]), **(env_overrides or {})}
+    env_kwargs = {**lists_to_tuples(cfg["task_config"]["env_kwargs"]), **(env_overrides or {})}
     env = make_env(task_config(task, env_kwargs=env_kwargs), min(trials, envs or 16), device)
     out = {
         name: run_episodes(
@@ -197,12 +189,6 @@ def run_controllers(
     }
     env.close()
     return out
-
-
-def _jsonable(x: Any) -> Any:
-    from sonogym.agents.configs import to_jsonable
-
-    return to_jsonable(x)
 
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:

@@ -41,7 +41,7 @@ def phantom(
     from sonogym.runs import prepare_output
 
     patient = load_phantom(seed, PhantomParams(spacing=spacing * 1e-3))
-    prepare_output(out, resume=False, force=force, what="subject")
+    prepare_output(out, resume=False, force=force, what="subject", marker="ct.nii.gz")
     save_totalsegmentator(patient, out, combined=combined)
     typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
     if preview:
@@ -243,6 +243,98 @@ def train(
         preset=preset, threads=threads, device=device, resume=resume, force=force, log=typer.echo,
     )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
+
+
+@app.command()
+def record(
+    task: Annotated[str, typer.Option(help="navigation or surgery.")],
+    out: Annotated[Path, typer.Option(help="Dataset folder (LeRobotDataset v3.0).")],
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="The paper's dataset setting: navigation mb / lb / lb-4-nets; surgery mb / "
+            "mb-5-patients / lb / lb-4-nets (simulator, nets, patients, starts, episodes)."
+        ),
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option(help="Episodes to write (default: the preset's, else 100).")
+    ] = None,
+    envs: Annotated[int | None, typer.Option(help="Parallel envs (default 16).")] = None,
+    simulator: Annotated[
+        str | None, typer.Option(help="physical, sonogym or learned (overrides the preset).")
+    ] = None,
+    learned_nets: Annotated[
+        str | None, typer.Option(help="Comma-separated shipped net indices or generator.pt paths.")
+    ] = None,
+    patients: Annotated[
+        list[str] | None, typer.Option(help="Phantom seed or subject folder; repeatable.")
+    ] = None,
+    phantom_spacing: Annotated[float | None, typer.Option(help="Phantom voxel size, mm.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed of the first batch (default 0).")] = None,
+    resume: Annotated[bool, typer.Option(help="Continue an interrupted recording.")] = False,
+    force: Annotated[bool, typer.Option(help="Replace an existing dataset in --out.")] = False,
+) -> None:
+    """Record the task's expert into a LeRobotDataset v3.0 folder (PNG frames in parquet),
+    for imitation learning (sonogym il-train) and for LeRobot itself."""
+    from sonogym.imitation.record import record as run_record
+
+    for name, v in (("--episodes", episodes), ("--envs", envs)):
+        if v is not None and v < 1:
+            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    kw = _env_options(simulator, learned_nets, patients, phantom_spacing)
+    run_record(task, out, episodes=episodes, preset=preset, envs=envs, env_kwargs=kw or None,
+               seed=seed, resume=resume, force=force, log=typer.echo)  # fmt: skip
+
+
+@app.command("il-train")
+def il_train(
+    policy: Annotated[str, typer.Option(help="act or diffusion.")],
+    data: Annotated[Path, typer.Option(help="Dataset folder (sonogym record).")],
+    out: Annotated[Path, typer.Option(help="Run folder (checkpoints, config.json, tb/).")],
+    steps: Annotated[int | None, typer.Option(help="Optimiser steps in total.")] = None,
+    preset: Annotated[
+        str, typer.Option(help="Policy size: cpu (default, documented) or paper (LeRobot's).")
+    ] = "cpu",
+    batch_size: Annotated[int, typer.Option(help="Samples per step (reference: 8).")] = 8,
+    seed: Annotated[int, typer.Option(help="Seed of init, sample order and noise.")] = 1000,
+    threads: Annotated[int | None, typer.Option(help="torch CPU threads.")] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+    resume: Annotated[bool, typer.Option(help="Continue the run in --out.")] = False,
+    force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
+) -> None:
+    """Train ACT or Diffusion Policy on an expert dataset; evaluate with sonogym eval --run."""
+    from sonogym.agents.presets import cpu_threads
+    from sonogym.imitation.train import ILTrainConfig, train_il
+
+    if steps is not None and steps < 1:
+        raise typer.BadParameter(f"--steps must be a positive integer, got {steps}")
+    import torch
+
+    torch.set_num_threads(
+        threads or (cpu_threads() if device == "cpu" else torch.get_num_threads())
+    )
+    cfg = ILTrainConfig(data=str(data), out=str(out), policy=policy, preset=preset,
+                        steps=steps or 10_000, batch_size=batch_size, seed=seed, device=device,
+                        resume=resume, force=force)  # fmt: skip
+    res = train_il(cfg)
+    typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
+               f"evaluate with: sonogym eval --run {out}")  # fmt: skip
+
+
+def _env_options(simulator, learned_nets, patients, phantom_spacing) -> dict:
+    """Env options from the shared command-line flags (only those given)."""
+    kw: dict = {}
+    if simulator is not None:
+        kw["simulator"] = simulator
+    if learned_nets:
+        kw["learned_nets"] = tuple(
+            int(v) if v.strip().isdigit() else v.strip() for v in learned_nets.split(",")
+        )
+    if patients:
+        kw["patients"] = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients)
+    if phantom_spacing is not None:
+        kw["phantom_spacing"] = phantom_spacing * 1e-3
+    return kw
 
 
 @app.command("eval")

@@ -23,16 +23,19 @@ class OutputExistsError(FileExistsError):
     """An output folder already holds something; the message says how to continue or replace."""
 
 
-def prepare_output(path: str | Path, resume: bool, force: bool, what: str = "run") -> bool:
+def prepare_output(
+    path: str | Path, resume: bool, force: bool, what: str = "run", marker: str | None = None
+) -> bool:
     """Apply the output-folder rule to ``path``; returns whether an existing ``what`` is being
-    resumed. With ``force`` an existing folder's contents are deleted first."""
+    resumed. With ``force`` an existing folder's contents are deleted first, but only if it
+    holds ``marker`` (a file every ``what`` has, e.g. ``config.json``): a folder that is not
+    one of ours is never deleted."""
     path = Path(path)
     if resume and force:
         raise ValueError("give --resume (continue) or --force (replace), not both")
-    exists = path.exists() and (not path.is_dir() or any(path.iterdir()))
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path} exists and is not a folder; choose another output path")
-    if not exists:
+    if not (path.exists() and any(path.iterdir())):
         if resume:
             raise FileNotFoundError(f"nothing to resume: {path} does not hold a {what}")
         path.mkdir(parents=True, exist_ok=True)
@@ -40,6 +43,11 @@ def prepare_output(path: str | Path, resume: bool, force: bool, what: str = "run
     if resume:
         return True
     if force:
+        if marker is not None and not (path / marker).exists():
+            raise OutputExistsError(
+                f"{path} is not empty and holds no {marker}: not a {what}; refusing to delete "
+                "it. Choose another output folder"
+            )
         shutil.rmtree(path)
         path.mkdir(parents=True)
         return False

@@ -172,7 +172,7 @@ def run_training(
                 "pass a larger --steps to train further"
             )
     else:
-        prepare_output(out, resume=False, force=force, what="training run")
+        prepare_output(out, resume=False, force=force, what="training run", marker="config.json")
     start = start_ckpt[1] if start_ckpt else 0
     threads_before = torch.get_num_threads()
     if cfg.threads is not None:

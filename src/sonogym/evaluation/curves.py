@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sonogym.evaluation.trained import load_run
 from sonogym.runs import atomic_write_text
 
 DEFAULT_METRIC = "Episode / return"
@@ -71,7 +72,8 @@ def discover_runs(paths: list[str | Path]) -> list[Path]:
 
 
 def run_config(run: str | Path) -> dict:
-    return json.loads((Path(run) / "config.json").read_text())
+    """A run's whole config.json (RL or IL)."""
+    return load_run(run).config
 
 
 def group_runs(runs: list[Path]) -> dict[tuple[str, str, str], list[Path]]:
@@ -80,12 +82,11 @@ def group_runs(runs: list[Path]) -> dict[tuple[str, str, str], list[Path]]:
 
     groups: dict[tuple[str, str, str], list[Path]] = {}
     for r in runs:
-        c = run_config(r)
-        sim = simulator_group(c["task_config"]["env_kwargs"].get("simulator"))
-        groups.setdefault((c["task"], c["algo"], sim), []).append(r)
+        c = load_run(r)
+        sim = simulator_group(c.env_kwargs.get("simulator"))
+        groups.setdefault((c.task, c.algo, sim), []).append(r)
     return {
-        k: sorted(v, key=lambda r: (run_config(r)["seed"], str(r)))
-        for k, v in sorted(groups.items())
+        k: sorted(v, key=lambda r: (load_run(r).seed, str(r))) for k, v in sorted(groups.items())
     }
 
 
@@ -98,7 +99,7 @@ def read_scalar(run: str | Path, tag: str) -> tuple[np.ndarray, np.ndarray]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     run = Path(run)
-    num_envs = int(run_config(run)["num_envs"])
+    num_envs = load_run(run).num_envs or 1  # IL runs: optimiser steps
     points: dict[int, float] = {}
     for ev in sorted(run.glob("events.out.tfevents.*")):
         acc = EventAccumulator(str(ev), size_guidance={"scalars": 0})
@@ -154,17 +155,17 @@ def curve_over_seeds(runs: list[Path], metric: str = DEFAULT_METRIC, points: int
         ys = np.stack([np.interp(steps, x, y) for x, y in series])
     from sonogym.evaluation.protocols import simulator_group
 
-    cfgs = [run_config(r) for r in runs]
+    cfgs = [load_run(r) for r in runs]
     return Curve(
-        task=cfgs[0]["task"],
-        algo=cfgs[0]["algo"],
-        sim=simulator_group(cfgs[0]["task_config"]["env_kwargs"].get("simulator")),
+        task=cfgs[0].task,
+        algo=cfgs[0].algo,
+        sim=simulator_group(cfgs[0].env_kwargs.get("simulator")),
         metric=metric,
         steps=steps,
         mean=ys.mean(0),
         std=ys.std(0),
         runs=[r.name for r in runs],
-        seeds=[int(c["seed"]) for c in cfgs],
+        seeds=[c.seed for c in cfgs],
     )
 
 

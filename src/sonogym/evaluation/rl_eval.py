@@ -1,11 +1,13 @@
-"""Evaluate a trained RL run against the task's expert and a random policy.
+"""Evaluate a trained run (RL or imitation learning) against the task's expert and a random
+policy.
 
 ``evaluate_run(run_dir, trials)`` rebuilds the run's env (its ``config.json`` env options,
 optionally overridden), runs ``trials`` episodes for each controller from the same seeded
 starts and returns the task's metrics (mean and std over episodes):
 
-* ``policy``: the run's newest checkpoint, deterministic (the Gaussian's mean action); for a
-  ``ppo-sf`` run, through its safety filter (actions with Q_c > threshold become 0);
+* ``policy``: the run's newest checkpoint: an RL run deterministically (the Gaussian's mean
+  action; a ``ppo-sf`` run through its safety filter: actions with Q_c > threshold become 0),
+  an IL run as ``ILPolicy`` (ACT's temporal ensemble, Diffusion Policy's denoising);
 * ``expert``: the task's expert (navigation, surgery) or heuristic raster (reconstruction),
   from the privileged ``info``, as ``sonogym demo`` runs it;
 * ``random``: actions uniform in the env's action box, from a seeded generator.
@@ -24,7 +26,8 @@ from typing import Any
 
 import torch
 
-from sonogym.runs import atomic_write_text, lists_to_tuples, to_jsonable
+from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, run_policy
+from sonogym.runs import atomic_write_text, to_jsonable
 
 CONTROLLERS = ("policy", "expert", "random")
 
@@ -44,8 +47,10 @@ def evaluate_run(
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
-    ``checkpoint``: the checkpoint to evaluate (default: the run's newest readable one; an
-    unreadable newer one is skipped with a warning naming it).
+    ``run``: an RL run (``sonogym train``) or an IL run (``sonogym il-train``, on a dataset
+    ``sonogym record`` wrote). ``checkpoint``: the checkpoint to evaluate (default: the run's
+    newest readable one; an unreadable newer RL checkpoint is skipped with a warning naming
+    it).
 
     ``protocol``: ``idt`` (default), ``odt-sim`` or ``odt-patient``
     (``sonogym.evaluation.protocols``): its test env options override the run's own, and its
@@ -56,7 +61,6 @@ def evaluate_run(
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
     ``trajectories-<protocol>.png``.
     """
-    from sonogym.agents.checkpoint import latest_readable_checkpoint, load_policy
     from sonogym.envs.registry import get_task
     from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
@@ -65,18 +69,14 @@ def evaluate_run(
     unknown = sorted(set(controllers) - set(CONTROLLERS))
     if unknown:
         raise ValueError(f"unknown controllers {unknown}; choose from {list(CONTROLLERS)}")
-    run = Path(run)
-    if checkpoint is None:
-        found = latest_readable_checkpoint(run) if (run / "config.json").exists() else None
-        checkpoint = found[0] if found else None
-    _, cfg = load_policy(run, checkpoint, device=device)  # checks the run folder early
+    trained = load_run(run)
+    checkpoint = Path(checkpoint) if checkpoint is not None else newest_checkpoint(trained)
     proto = get_protocol(protocol or "idt", held_out_patients)
     trials = proto.trials if trials is None else trials
     seed = proto.seed if seed is None else seed
     if trials < 1:
         raise ValueError(f"trials must be >= 1, got {trials}")
-    train_env = lists_to_tuples(cfg["task_config"]["env_kwargs"])
-    overrides = proto.test_env_overrides(train_env)
+    overrides = proto.test_env_overrides(trained.env_kwargs)
     clash = sorted(set(env_overrides or {}) & set(PROTOCOL_KEYS))
     if protocol is not None and clash:
         raise ValueError(
@@ -86,7 +86,7 @@ def evaluate_run(
     name = protocol or ("custom" if env_overrides else "idt")
 
     episodes = run_controllers(
-        run, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint
+        trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint
     )
     results = {
         c: {
@@ -95,22 +95,23 @@ def evaluate_run(
         }
         for c, ep in episodes.items()
     }
-    track = get_task(cfg["task"]).track
+    track = get_task(trained.task).track
     meta = {
-        "task": cfg["task"],
-        "algo": cfg["algo"],
-        "run": run.resolve().name,
-        "train_seed": cfg["seed"],
+        "task": trained.task,
+        "algo": trained.algo,
+        "run": trained.path.resolve().name,
+        "train_seed": trained.seed,
         "protocol": name,
         "eval_seed": seed,
         "trials": trials,
         "controllers": list(episodes),
-        "checkpoint": Path(checkpoint).name,
-        "train_env": cfg["task_config"]["env_kwargs"],
-        "test_env": to_jsonable({**train_env, **overrides}),
+        "checkpoint": checkpoint.name,
+        "train_env": to_jsonable(trained.env_kwargs),
+        "test_env": to_jsonable({**trained.env_kwargs, **overrides}),
         "track_columns": list(track.columns),
         "track_units": list(track.units),
     }
+    run = trained.path
     log = save_log(
         log_path(run, name),
         meta,
@@ -121,10 +122,11 @@ def evaluate_run(
         plot_trajectories(load_log(log), run / f"trajectories-{name}.png")
     stem = "eval" if name == "idt" else f"eval-{name}"
     table = {
-        "task": cfg["task"],
+        "task": trained.task,
         "trials": trials,
         "seed": seed,
         "protocol": name,
+        "checkpoint": checkpoint.name,
         "env_overrides": to_jsonable(overrides),
         "results": results,
     }
@@ -134,20 +136,18 @@ def evaluate_run(
 
 
 def controller_policy(
-    name: str, env, task: str, run: str | Path, seed: int, device: str = "cpu", checkpoint=None
+    name: str, env, trained: TrainedRun, seed: int, device: str = "cpu", checkpoint=None
 ):
     """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy (its
     ``checkpoint``, default the newest readable), the task's expert (or heuristic), or uniform
     random actions from ``seed``."""
     if name == "policy":
-        from sonogym.agents.checkpoint import rl_policy
-
-        return rl_policy(run, env, checkpoint, device=device)
+        return run_policy(trained, env, checkpoint, device)
     if name == "expert":
         from sonogym.envs.policy import ExpertPolicy
         from sonogym.envs.registry import get_task
 
-        return ExpertPolicy(env, get_task(task).expert)
+        return ExpertPolicy(env, get_task(trained.task).expert)
     if name == "random":
         from sonogym.envs.policy import RandomPolicy
 
@@ -156,7 +156,7 @@ def controller_policy(
 
 
 def run_controllers(
-    run: str | Path,
+    run: str | Path | TrainedRun,
     trials: int,
     envs: int | None = None,
     seed: int = 1000,
@@ -168,25 +168,19 @@ def run_controllers(
     """Run ``trials`` episodes per controller in the run's env (with ``env_overrides``), all
     from the same seeded starts: {controller: {"metrics": {metric: (trials,) array},
     "track": (trials, T + 1, D) array}} (see ``episodes.run_episodes``). Nothing is written."""
-    from sonogym.agents.checkpoint import load_policy
-    from sonogym.agents.configs import task_config
-    from sonogym.agents.train import make_env
+    from sonogym.envs.registry import make_vec
     from sonogym.evaluation.episodes import run_episodes
 
-    _, cfg = load_policy(run, checkpoint, device=device)  # checks the run folder early
-    task = cfg["task"]
-    env_kwargs = {**lists_to_tuples(cfg["task_config"]["env_kwargs"]), **(env_overrides or {})}
-    env = make_env(task_config(task, env_kwargs=env_kwargs), min(trials, envs or 16), device)
+    trained = run if isinstance(run, TrainedRun) else load_run(run)
+    env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device}
+    env = make_vec(trained.task, min(trials, envs or 16), **env_kwargs)
     out = {
         name: run_episodes(
-            env,
-            controller_policy(name, env, task, run, seed, device, checkpoint),
-            trials,
-            seed,
-            task,
+            env, controller_policy(name, env, trained, seed, device, checkpoint), trials, seed,
+            trained.task,
         )
         for name in controllers
-    }
+    }  # fmt: skip
     env.close()
     return out
 

@@ -143,7 +143,7 @@ def record(
         kw.update(env_kwargs or {})
         if episodes is None:
             episodes = spec.preset(preset).episodes if preset else 100
-        prepare_output(out, resume=False, force=force, what="dataset")
+        prepare_output(out, resume=False, force=force, what="dataset", marker=META)
         meta = {"task": task, "preset": preset, "envs": envs, "seed": seed,
                 "env_kwargs": to_jsonable(kw), "episodes_wanted": episodes, "batches_done": 0,
                 "episodes_written": 0, "failed": 0}  # fmt: skip

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from sonogym.imitation import run as runio
 from sonogym.imitation.lerobot_format import read_info
 from sonogym.imitation.processor import PolicyFeatures, stats_subset
 from sonogym.imitation.reader import LeRobotFrames, load_stats
+from sonogym.runs import prepare_output
 
 
 @dataclass(frozen=True)
@@ -113,22 +113,16 @@ def _lr_lambda(policy: str, config, total: int):
     return f
 
 
+def _recording(data: Path) -> dict:
+    """How a sonogym-recorded dataset was recorded (``meta/sonogym.json``); {} for others."""
+    from sonogym.imitation.record import META, read_recording
+
+    return read_recording(data) if (data / META).is_file() else {}
+
+
 def _prepare_out(cfg: ILTrainConfig) -> tuple[Path, list[tuple[int, Path]]]:
     out = Path(cfg.out)
-    if out.exists() and any(out.iterdir()):
-        is_run = (out / "config.json").exists()
-        if cfg.force:
-            if not is_run:
-                raise FileExistsError(
-                    f"{out} is not empty and holds no run config.json; refusing to delete it"
-                )
-            shutil.rmtree(out)
-        elif not cfg.resume:
-            raise FileExistsError(
-                f"{out} already holds a run; pass resume=True (--resume) to continue it or "
-                "force=True (--force) to replace it"
-            )
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_output(out, cfg.resume, cfg.force, what="IL run", marker="config.json")
     found = runio.checkpoints(out) if cfg.resume else []
     return out, found
 
@@ -154,7 +148,13 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     loader_gen = torch.Generator().manual_seed(cfg.seed + 2)
 
+    recording = _recording(data)
     run_cfg = {
+        # what evaluation needs without the dataset: the task and the env it imaged
+        "task": recording.get("task"),
+        "algo": "dp" if cfg.policy == "diffusion" else cfg.policy,
+        "seed": cfg.seed,
+        "env_kwargs": recording.get("eval_env_kwargs", {}),
         "policy": cfg.policy,
         "policy_config": dataclasses.asdict(pcfg),
         "train": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "policy_config"},

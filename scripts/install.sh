@@ -17,5 +17,5 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
                 --index-url https://download.pytorch.org/whl/cpu
     fi
 fi
-$PIP install -e ".[dev]"
+$PIP install -e ".[dev,ray]"
 .venv/bin/python -c "import torch, sonogym; print('sonogym', sonogym.__version__, 'torch', torch.__version__)"

@@ -337,6 +337,69 @@ def _env_options(simulator, learned_nets, patients, phantom_spacing) -> dict:
     return kw
 
 
+@app.command()
+def sweep(
+    task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
+    out: Annotated[Path, typer.Option(help="Sweep folder (sweep.md/csv, runs/, tune/, plots/).")],
+    algo: Annotated[str, typer.Option(help="ppo, a2c; ppo-sf, ppo-lag (surgery).")] = "ppo",
+    seeds: Annotated[int, typer.Option(help="Seeds per grid point (0, 1, ...).")] = 3,
+    grid: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="key=v1,v2; repeatable. Keys: num_envs, net, obs_downsample, reward_scale, "
+            "init_log_std, ppo.<field>, a2c.<field>, env.<option>."
+        ),
+    ] = None,
+    samples: Annotated[int, typer.Option(help="Repetitions of the grid (Tune num_samples).")] = 1,
+    address: Annotated[
+        str | None, typer.Option(help="An existing Ray cluster (ray://host:10001); default local.")
+    ] = None,
+    resume: Annotated[bool, typer.Option(help="Continue an interrupted sweep in --out.")] = False,
+    force: Annotated[bool, typer.Option(help="Replace an existing sweep in --out.")] = False,
+    preset: Annotated[str | None, typer.Option(help="auto, cpu or paper (every trial).")] = None,
+    envs: Annotated[int | None, typer.Option(help="Parallel envs per trial.")] = None,
+    steps: Annotated[int | None, typer.Option(help="Env steps per env per trial.")] = None,
+    net: Annotated[str | None, typer.Option(help="Conv trunk: paper or small.")] = None,
+    obs_downsample: Annotated[int | None, typer.Option(help="Image pooling factor.")] = None,
+    obs_mode: Annotated[str | None, typer.Option(help="Observation mode (e.g. state).")] = None,
+    simulator: Annotated[str | None, typer.Option(help="physical, sonogym or learned.")] = None,
+    learned_nets: Annotated[str | None, typer.Option(help="Comma-separated nets.")] = None,
+    patients: Annotated[list[str] | None, typer.Option(help="Patients; repeatable.")] = None,
+    phantom_spacing: Annotated[float | None, typer.Option(help="Phantom voxel size, mm.")] = None,
+    threads: Annotated[int | None, typer.Option(help="torch threads per trial.")] = None,
+    device: Annotated[str | None, typer.Option(help="cpu or cuda.")] = None,
+) -> None:
+    """Several seeds and a hyperparameter grid on Ray Tune; every trial is a normal run folder
+    (sonogym eval / plot / report work on it); a table of the trials and the mean ± 1 sigma
+    learning curves at the end."""
+    from sonogym.agents.sweep import import_ray, parse_grid
+    from sonogym.agents.sweep import sweep as run_sweep
+
+    import_ray()  # says how to install Ray before anything else
+    for name, v in (("--seeds", seeds), ("--samples", samples), ("--envs", envs),
+                    ("--steps", steps)):  # fmt: skip
+        if v is not None and v < 1:
+            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    try:
+        points = parse_grid(grid)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    kw = _env_options(simulator, learned_nets, patients, phantom_spacing)
+    if obs_mode is not None:
+        kw["obs_mode"] = obs_mode
+    options = dict(preset=preset or "auto", envs=envs, steps=steps, net=net,
+                   obs_downsample=obs_downsample, threads=threads, device=device or "cpu",
+                   env_kwargs=kw or None)  # fmt: skip
+    res = run_sweep(task, algo, out, seeds=seeds, grid=points, samples=samples, address=address,
+                    resume=resume, force=force, log=typer.echo, **options)  # fmt: skip
+    from sonogym.evaluation.curves import plot_curves
+
+    runs = sorted(p for p in (res.out / "runs").glob("*") if (p / "config.json").is_file())
+    if runs:
+        for p in plot_curves(runs, res.out / "plots", expert=False):
+            typer.echo(f"wrote {p}")
+
+
 @app.command("eval")
 def eval_(
     run: Annotated[Path, typer.Option(help="Run directory written by `sonogym train`.")],

@@ -16,6 +16,7 @@ from sonogym.envs.registry import get_task
 from sonogym.evaluation.curves import curve_over_seeds, discover_runs, plot_curves
 from sonogym.evaluation.episodes import load_log, log_path, save_log
 from sonogym.evaluation.report import build_report, table1_columns, task_metrics
+from sonogym.evaluation.trained import IL_KIND
 
 TRIALS = 5
 T = 6
@@ -36,13 +37,18 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
     env = {"patients": [0, 1, 2, 3, 4], "simulator": simulator}
     if simulator == "learned":
         env["learned_nets"] = [0, 1, 2, 3]
-    cfg = {
-        "task": task,
-        "algo": algo,
-        "seed": seed,
-        "num_envs": 4,
-        "task_config": {"env_kwargs": env},
-    }
+    if algo in ("act", "diffusion"):  # an `sonogym il-train` run's config
+        cfg = {"kind": IL_KIND, "task": task, "algo": algo, "seed": seed, "env_kwargs": env}
+    else:  # a `sonogym train` run's (the keys evaluation reads; no checkpoint to load)
+        cfg = {
+            "task": task,
+            "algo": algo,
+            "seed": seed,
+            "num_envs": 4,
+            "obs_layout": {"keys": ["image"], "shapes": [[1, 50, 37]]},
+            "action_space": {"low": [-1.0], "high": [1.0]},
+            "task_config": {"env_kwargs": env, "obs_downsample": 1, "obs_scales": {}},
+        }
     (run / "config.json").write_text(json.dumps(cfg))
     rng = np.random.default_rng(hash((task, algo, seed, simulator)) % 2**32)
     track = get_task(task).track

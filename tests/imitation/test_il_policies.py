@@ -152,7 +152,7 @@ def test_training_loss_falls_and_run_folder(blob_dataset, tmp_path, policy, conf
     assert rc["stats"]["action"]["min"] == stats["action"]["min"].tolist()
     assert list((tmp_path / "run" / "tb").glob("events.out.tfevents.*"))
     # an existing run is refused without resume, continued with it
-    with pytest.raises(FileExistsError, match="resume=True"):
+    with pytest.raises(FileExistsError, match="il-train. run; pass --resume"):
         train_il(cfg)
     more = train_il(ILTrainConfig(**{**cfg.__dict__, "steps": 220, "resume": True}))
     assert more.steps == 220 and checkpoints(tmp_path / "run")[-1][0] == 220

@@ -148,6 +148,12 @@ def load_train_config(out: str | Path) -> TrainConfig:
         ) from None
 
 
+#: ``on_checkpoint(steps, checkpoint, metrics)``: called after each checkpoint is written
+#: (and the final one) with the mean episode metrics of the episodes that ended since the last
+#: call (empty if none did)
+CheckpointCallback = Callable[[int, Path, dict[str, float]], None]
+
+
 def run_training(
     cfg: TrainConfig,
     out: str | Path,
@@ -155,6 +161,7 @@ def run_training(
     force: bool = False,
     progress: bool = True,
     log: Callable[[str], None] = print,
+    on_checkpoint: CheckpointCallback | None = None,
 ) -> TrainResult:
     """Run the training ``cfg`` describes into ``out`` (see the module docstring)."""
     from skrl.trainers.torch import SequentialTrainerCfg
@@ -220,6 +227,7 @@ def run_training(
         _announce(cfg, out, start, log, agent, adapter, obs)
     bar = tqdm(total=steps, initial=start, disable=not progress, unit="step", desc=f"{task}/{algo}")
     done = start
+    recent = _EpisodeMeans()
     try:
         for t in range(start, steps):
             agent.pre_interaction(timestep=t, timesteps=steps)
@@ -240,11 +248,14 @@ def run_training(
                     timesteps=steps,
                 )
                 _track_episode_metrics(agent, info)
+                recent.add(info)
             agent.post_interaction(timestep=t, timesteps=steps)
             obs = next_obs
             done = t + 1
             if done % ckpt_interval == 0 and done < steps:
-                save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+                path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+                if on_checkpoint is not None:
+                    on_checkpoint(done, path, recent.pop())
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
@@ -262,7 +273,33 @@ def run_training(
         torch.set_num_threads(threads_before)
     bar.close()
     final = save_agent(agent, ckpt_dir / f"agent_{steps}.pt")
+    if on_checkpoint is not None:
+        on_checkpoint(steps, final, recent.pop())
     return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+class _EpisodeMeans:
+    """Sums of the episode metrics of ended episodes, since the last ``pop``."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, float] = {}
+        self.count = 0
+
+    def add(self, info: dict[str, Any]) -> None:
+        final = info.get("final_info")
+        if not final:
+            return
+        n = len(final["env_ids"])
+        for k, v in final.items():
+            if k != "env_ids":
+                self.sums[k] = self.sums.get(k, 0.0) + float(v.float().sum())
+        self.count += n
+
+    def pop(self) -> dict[str, float]:
+        out = {k: v / self.count for k, v in self.sums.items()} if self.count else {}
+        out["episodes"] = float(self.count)
+        self.sums, self.count = {}, 0
+        return out
 
 
 def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:

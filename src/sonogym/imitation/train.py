@@ -122,7 +122,7 @@ def _recording(data: Path) -> dict:
 
 def _prepare_out(cfg: ILTrainConfig) -> tuple[Path, list[tuple[int, Path]]]:
     out = Path(cfg.out)
-    prepare_output(out, cfg.resume, cfg.force, what="IL run", marker="config.json")
+    prepare_output(out, cfg.resume, cfg.force, what="`sonogym il-train` run", marker="config.json")
     found = runio.checkpoints(out) if cfg.resume else []
     return out, found
 

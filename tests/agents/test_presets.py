@@ -1,0 +1,96 @@
+"""Device presets: what `sonogym train` resolves on a CPU or GPU machine, in which order, and
+how the resolved config travels through config.json."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from sonogym.agents.configs import TrainConfig, resolve_train_config
+from sonogym.agents.presets import cpu_threads, resolve_preset
+from sonogym.envs.registry import get_task
+
+
+@pytest.mark.parametrize(
+    "device, cores, name, envs, net, threads",
+    [
+        ("cpu", 2, "cpu", 64, "small", 1),  # a second intra-op thread slows a busy 2-core box
+        ("cpu", 1, "cpu", 64, "small", 1),
+        ("cpu", 16, "cpu", 64, "small", 4),
+        ("cuda", 2, "paper", 128, "paper", None),
+        ("cuda:1", 16, "paper", 128, "paper", None),
+    ],
+)
+def test_auto_preset_follows_the_device(device, cores, name, envs, net, threads):
+    p = resolve_preset("auto", device, cores=cores)
+    assert (p.name, p.num_envs, p.net, p.threads) == (name, envs, net, threads)
+
+
+def test_named_presets_and_image_pooling():
+    cpu, paper = resolve_preset("cpu", "cuda", cores=2), resolve_preset("paper", "cpu")
+    assert cpu.name == "cpu" and paper.name == "paper"  # a named preset ignores the device
+    assert cpu.obs_downsample(200) == 4 and cpu.obs_downsample(50) == 1  # ~50 px of depth
+    assert paper.obs_downsample(200) == 1 and cpu.obs_downsample(None) == 1
+    assert cpu_threads(2) == 1 and cpu_threads(3) == 3 and cpu_threads(64) == 4
+    with pytest.raises(ValueError, match="unknown preset 'gpu'"):
+        resolve_preset("gpu")
+
+
+def test_cpu_preset_resolves_per_task():
+    nav = resolve_train_config("navigation", "ppo", preset="auto", device="cpu")
+    assert nav.preset == "cpu" and nav.rl.num_envs == 64 and nav.rl.net == "small"
+    assert nav.rl.obs_downsample == 4  # 200 px of depth pooled to 50
+    surg = resolve_train_config("surgery", "ppo", preset="cpu")
+    assert surg.rl.obs_downsample == 1  # the 3-D volume is 50 px deep already
+    assert surg.params == get_task("surgery").training.ppo_cpu  # the task's CPU table
+    assert surg.params != get_task("surgery").training.ppo
+    paper = resolve_train_config("surgery", "ppo", preset="paper")
+    assert paper.params == get_task("surgery").training.ppo  # the paper's table
+    assert (paper.rl.num_envs, paper.rl.net, paper.threads) == (128, "paper", None)
+
+
+@pytest.mark.parametrize("preset", ["cpu", "paper"])
+def test_every_preset_keeps_the_tasks_exploration(preset):
+    # presets size the machine's share only; the task owns its initial policy std
+    surg = resolve_train_config("surgery", "ppo", preset=preset)
+    assert surg.rl.init_log_std == pytest.approx(math.log(0.05))
+    assert surg.rl.standardize_vectors
+    nav = resolve_train_config("navigation", "ppo", preset=preset)
+    assert nav.rl.init_log_std == get_task("navigation").training.init_log_std
+
+
+def test_explicit_options_win_over_preset_and_task():
+    cfg = resolve_train_config(
+        "navigation", "a2c", preset="cpu", envs=8, steps=500, net="paper", obs_downsample=2,
+        threads=2, seed=7, env_kwargs={"patients": [0, 1]},
+    )  # fmt: skip
+    assert (cfg.rl.num_envs, cfg.steps, cfg.rl.net, cfg.rl.obs_downsample) == (8, 500, "paper", 2)
+    assert (cfg.threads, cfg.seed, cfg.preset) == (2, 7, "cpu")
+    assert cfg.rl.env_kwargs["patients"] == (0, 1)
+    assert cfg.params == get_task("navigation").training.a2c
+
+
+def test_train_config_survives_config_json():
+    cfg = resolve_train_config(
+        "surgery", "ppo-lag", preset="cpu", envs=4, steps=96, seed=3, threads=1,
+        env_kwargs={"obs_mode": "state", "patients": [0]}, checkpoint_interval=32,
+    )  # fmt: skip
+    back = TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    assert back == cfg
+    assert back.intervals() == cfg.intervals() == (32, cfg.params.rollouts)
+
+
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        (dict(envs=0), "envs must be a positive integer"),
+        (dict(steps=-5), "steps must be a positive integer"),
+        (dict(obs_downsample=0), "obs_downsample must be a positive integer"),
+        (dict(threads=0), "threads must be >= 1"),
+    ],
+)
+def test_nonsense_options_are_refused_not_defaulted(kw, message):
+    with pytest.raises(ValueError, match=message):
+        resolve_train_config("navigation", "ppo", preset="cpu", **kw)

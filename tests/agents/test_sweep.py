@@ -1,0 +1,75 @@
+"""`sonogym sweep` on a local Ray: seeds x grid as normal run folders, a table of every trial, a
+failing trial reported while the others finish, and a resumed sweep that reruns nothing."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+
+pytest.importorskip("ray.tune")
+
+from sonogym.agents.sweep import apply, parse_grid, sweep, trial_name  # noqa: E402
+from sonogym.evaluation.trained import load_run  # noqa: E402
+
+TINY = dict(
+    preset="cpu",
+    envs=2,
+    steps=32,
+    threads=1,
+    env_kwargs=dict(patients=(0,), phantom_spacing=0.002, episode_length=16),
+    checkpoint_interval=16,
+)
+
+
+def _rows(out):
+    with open(out / "sweep.csv") as f:
+        return {r["trial"]: r for r in csv.DictReader(f)}
+
+
+def test_grid_parsing_and_trial_configs():
+    grid = parse_grid(["ppo.learning_rate=1e-4,3e-4", "net=small", "env.episode_length=20"])
+    assert grid == {"ppo.learning_rate": [1e-4, 3e-4], "net": ["small"], "env.episode_length": [20]}
+    with pytest.raises(ValueError, match="unknown grid key 'lr'"):
+        parse_grid(["lr=1"])
+    with pytest.raises(ValueError, match="write key=value1,value2"):
+        parse_grid(["net"])
+    from sonogym.agents.configs import resolve_train_config
+
+    base = resolve_train_config("navigation", "ppo", **TINY)
+    cfg = apply(base, {"seed": 2, "ppo.learning_rate": 3e-4, "env.episode_length": 20})
+    assert cfg.seed == 2 and cfg.params.learning_rate == 3e-4
+    assert cfg.rl.env_kwargs["episode_length"] == 20 and cfg.rl.num_envs == 2
+    assert base.params.learning_rate != 3e-4  # the base is untouched
+    name = trial_name("navigation", "ppo", {"seed": 2, "ppo.learning_rate": 3e-4})
+    assert name == "navigation-ppo-ppo.learning_rate=0.0003-s2"
+
+
+def test_local_sweep_table_failure_and_resume(tmp_path):
+    out = tmp_path / "sweep"
+    # one grid value the phantom refuses (0.5 m voxels): that trial errors, the other finishes
+    res = sweep(
+        "navigation", "ppo", out, seeds=1, grid={"env.phantom_spacing": [0.002, 0.5]},
+        log=lambda m: None, **TINY,
+    )  # fmt: skip
+    status = {r.params["env.phantom_spacing"]: r for r in res.trials}
+    assert status[0.002].status == "TERMINATED" and status[0.002].error is None
+    assert status[0.5].status == "ERROR" and "spacing" in status[0.5].error
+    ok = out / "runs" / status[0.002].name
+    assert load_run(ok).seed == 0 and load_run(ok).config["num_envs"] == 2
+    ckpts = sorted((ok / "checkpoints").glob("agent_*.pt"))
+    assert [p.name for p in ckpts] == ["agent_0.pt", "agent_16.pt", "agent_32.pt"]
+    assert status[0.002].metrics["steps"] == 32 and status[0.002].metrics["episodes"] >= 2
+    rows = _rows(out)
+    assert rows[status[0.002].name]["status"] == "TERMINATED"
+    assert rows[status[0.5].name]["status"] == "ERROR"
+    assert "failed:" in (out / "sweep.md").read_text()
+
+    # the folder rule: an existing sweep is neither continued nor replaced by accident
+    with pytest.raises(FileExistsError, match="--resume"):
+        sweep("navigation", "ppo", out, seeds=1, log=lambda m: None, **TINY)
+
+    before = {p: p.stat().st_mtime_ns for p in ckpts}
+    again = sweep("navigation", "ppo", out, resume=True, log=lambda m: None)
+    assert {p: p.stat().st_mtime_ns for p in ckpts} == before  # nothing was retrained
+    assert {r.name: r.status for r in again.trials} == {r.name: r.status for r in res.trials}

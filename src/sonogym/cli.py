@@ -296,6 +296,10 @@ def il_train(
         str, typer.Option(help="Policy size: cpu (default, documented) or paper (LeRobot's).")
     ] = "cpu",
     batch_size: Annotated[int, typer.Option(help="Samples per step (reference: 8).")] = 8,
+    image_size: Annotated[
+        str | None,
+        typer.Option(help="HxW px the images are resampled to (e.g. 100x75); default: as stored."),
+    ] = None,
     seed: Annotated[int, typer.Option(help="Seed of init, sample order and noise.")] = 1000,
     threads: Annotated[int | None, typer.Option(help="torch CPU threads.")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
@@ -304,18 +308,32 @@ def il_train(
 ) -> None:
     """Train ACT or Diffusion Policy on an expert dataset; evaluate with sonogym eval --run."""
     from sonogym.agents.presets import cpu_threads
+    from sonogym.imitation.run import make_config
     from sonogym.imitation.train import ILTrainConfig, train_il
 
     if steps is not None and steps < 1:
         raise typer.BadParameter(f"--steps must be a positive integer, got {steps}")
+    overrides = {}
+    if image_size is not None:
+        h, sep, w = image_size.lower().partition("x")
+        if not (sep and h.isdigit() and w.isdigit() and int(h) > 0 and int(w) > 0):
+            raise typer.BadParameter(
+                f"--image-size takes HxW in pixels, e.g. 100x75; got {image_size!r}"
+            )
+        overrides["image_size"] = (int(h), int(w))
+    try:
+        policy_config = make_config(policy, preset, **overrides) if overrides else None
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
     import torch
 
     torch.set_num_threads(
         threads or (cpu_threads() if device == "cpu" else torch.get_num_threads())
     )
     cfg = ILTrainConfig(data=str(data), out=str(out), policy=policy, preset=preset,
-                        steps=steps or 10_000, batch_size=batch_size, seed=seed, device=device,
-                        resume=resume, force=force)  # fmt: skip
+                        policy_config=policy_config, steps=steps or 10_000,
+                        batch_size=batch_size, seed=seed, device=device, resume=resume,
+                        force=force)  # fmt: skip
     res = train_il(cfg)
     typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
                f"evaluate with: sonogym eval --run {out}")  # fmt: skip
@@ -354,6 +372,9 @@ def sweep(
     address: Annotated[
         str | None, typer.Option(help="An existing Ray cluster (ray://host:10001); default local.")
     ] = None,
+    max_concurrent: Annotated[
+        int | None, typer.Option(help="Trials at once (default: as many as the CPUs hold).")
+    ] = None,
     resume: Annotated[bool, typer.Option(help="Continue an interrupted sweep in --out.")] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing sweep in --out.")] = False,
     preset: Annotated[str | None, typer.Option(help="auto, cpu or paper (every trial).")] = None,
@@ -377,7 +398,7 @@ def sweep(
 
     import_ray()  # says how to install Ray before anything else
     for name, v in (("--seeds", seeds), ("--samples", samples), ("--envs", envs),
-                    ("--steps", steps)):  # fmt: skip
+                    ("--steps", steps), ("--max-concurrent", max_concurrent)):  # fmt: skip
         if v is not None and v < 1:
             raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
     try:
@@ -391,7 +412,8 @@ def sweep(
                    obs_downsample=obs_downsample, threads=threads, device=device or "cpu",
                    env_kwargs=kw or None)  # fmt: skip
     res = run_sweep(task, algo, out, seeds=seeds, grid=points, samples=samples, address=address,
-                    resume=resume, force=force, log=typer.echo, **options)  # fmt: skip
+                    max_concurrent=max_concurrent, resume=resume, force=force, log=typer.echo,
+                    **options)  # fmt: skip
     from sonogym.evaluation.curves import plot_curves
 
     runs = sorted(p for p in (res.out / "runs").glob("*") if (p / "config.json").is_file())

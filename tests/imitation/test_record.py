@@ -125,11 +125,16 @@ def test_cli_record_il_train_and_eval_an_il_run(tmp_path):
     res = runner.invoke(app, ["record", "--task", "navigation", "--out", str(data), *args])
     assert res.exit_code == 0, res.output
     assert "MiB per episode" in res.output and "wrote 2 episodes" in res.output
+    bad = runner.invoke(app, ["il-train", "--policy", "act", "--data", str(data), "--out",
+                              str(run), "--image-size", "100"])  # fmt: skip
+    assert bad.exit_code != 0 and "HxW" in bad.output and not run.exists()
     res = runner.invoke(app, ["il-train", "--policy", "act", "--data", str(data), "--out",
-                              str(run), "--steps", "3"])  # fmt: skip
+                              str(run), "--steps", "3", "--image-size", "50x37"])  # fmt: skip
     assert res.exit_code == 0, res.output
     cfg = json.loads((run / "config.json").read_text())
     assert (cfg["task"], cfg["algo"]) == ("navigation", "act")
+    assert cfg["policy_config"]["image_size"] == [50, 37]  # the cpu preset, images resampled
+    assert cfg["policy_config"]["chunk_size"] == 20
     assert cfg["env_kwargs"] == {"phantom_spacing": 0.002}
     res = runner.invoke(app, ["eval", "--run", str(run), "--trials", "2", "--envs", "2"])
     assert res.exit_code == 0, res.output

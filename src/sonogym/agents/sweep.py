@@ -114,13 +114,15 @@ def sweep(
     grid: dict[str, list[Any]] | None = None,
     samples: int = 1,
     address: str | None = None,
+    max_concurrent: int | None = None,
     resume: bool = False,
     force: bool = False,
     log: Callable[[str], None] = print,
     **train_options: Any,
 ) -> SweepResult:
     """Run the sweep (see the module doc). ``train_options``: ``resolve_train_config``'s
-    (``preset``, ``envs``, ``steps``, ``device``, ``env_kwargs``, ...), for every trial."""
+    (``preset``, ``envs``, ``steps``, ``device``, ``env_kwargs``, ...), for every trial.
+    ``max_concurrent``: trials running at once (None: as many as the CPUs/GPUs hold)."""
     ray, tune = import_ray()
     out = Path(out).resolve()
     if resume:
@@ -157,7 +159,9 @@ def sweep(
             tuner = tune.Tuner(
                 trainable,
                 param_space=space,
-                tune_config=tune.TuneConfig(num_samples=spec["samples"]),
+                tune_config=tune.TuneConfig(
+                    num_samples=spec["samples"], max_concurrent_trials=max_concurrent
+                ),
                 run_config=tune.RunConfig(
                     name="tune",
                     storage_path=str(out),

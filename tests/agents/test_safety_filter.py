@@ -10,7 +10,9 @@ from sonogym.agents.adapter import ObsLayout
 from sonogym.agents.checkpoint import load_cost_critic
 from sonogym.agents.safety_filter import CostCritic, filter_actions
 from sonogym.agents.train import train
-from sonogym.evaluation.rl_eval import evaluate_run
+from sonogym.envs.registry import make_vec
+from sonogym.evaluation.rl_eval import controller_policy, evaluate_run
+from sonogym.evaluation.trained import load_run
 
 LAYOUT = ObsLayout(("image", "pose"), ((5, 50, 37), (7,)))
 BOX = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
@@ -54,3 +56,14 @@ def test_ppo_sf_trains_cost_critic_and_eval_filters(tmp_path):
     assert thr == 0.5
     res = evaluate_run(run, trials=2, envs=2, controllers=("policy",))
     assert "safe_ratio" in res["policy"]
+    # by default a ppo-sf run is evaluated with and without its filter, from the same starts
+    res = evaluate_run(run, trials=2, envs=2, plot=False)
+    assert list(res) == ["policy", "unfiltered", "expert", "random"]
+    env = make_vec("surgery", 2, patients=(0,), phantom_spacing=0.002, episode_length=10)
+    pol = controller_policy("policy", env, load_run(run), 0)
+    raw = controller_policy("unfiltered", env, load_run(run), 0)
+    assert pol.critic is not None and raw.critic is None
+    obs, info = env.reset(seed=0)
+    x = pol.adapter.flatten(obs)
+    mean = pol.model.act({"observations": x}, role="policy")[1]["mean_actions"]
+    assert torch.equal(raw.act(obs, info), mean)  # the unfiltered policy is the PPO mean

@@ -70,6 +70,8 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
             "expert": _metrics(task, exp_rng, shift=100.0),
             "random": _metrics(task, rng),
         }
+        if algo == "ppo-sf":  # sonogym eval adds the policy without its filter
+            metrics["unfiltered"] = _metrics(task, rng)
         tracks = {c: rng.random((TRIALS, T + 1, len(track.columns))) for c in metrics}
         save_log(log_path(run, proto), meta, metrics, tracks)
     if curve is not None:
@@ -139,10 +141,16 @@ def test_surgery_report_is_reproducible_and_pools_the_right_logs(surgery_runs, t
 
     rows = list(csv.DictReader(io.StringIO((a.parent / "table1.csv").read_text())))
     assert [(r["us_sim"], r["algos"]) for r in rows] == [
-        ("MB", "PPO"), ("MB", "PPO + SF"), ("MB", "expert"),
+        ("MB", "PPO"), ("MB", "PPO + SF"), ("MB", "PPO + SF, filter off"), ("MB", "expert"),
         ("LB", "PPO"), ("LB", "ACT"), ("LB", "expert"),
     ]  # fmt: skip
-    mb_ppo, lb_act = rows[0], rows[4]
+    mb_ppo, lb_act = rows[0], rows[5]
+    # the ppo-sf run's unfiltered episodes make their own row, not the PPO + SF one
+    off = load_log(log_path(runs[2], "idt")).metrics["unfiltered"]["side_error_mm"]
+    assert float(rows[2]["side_error_mm_IDT_mean"]) == pytest.approx(
+        float(off.astype(np.float64).mean()), rel=1e-5
+    )
+    assert int(rows[1]["side_error_mm_IDT_n"]) == int(rows[2]["side_error_mm_IDT_n"]) == TRIALS
     # MB PPO pools both seeds' episodes; IDT from idt logs, ODT from odt-patient logs
     for col, proto in (("IDT", "idt"), ("ODT", "odt-patient")):
         v = np.concatenate(
@@ -157,12 +165,12 @@ def test_surgery_report_is_reproducible_and_pools_the_right_logs(surgery_runs, t
     want = 100 * np.concatenate([sr, sr1]).astype(np.float64).mean()
     assert float(mb_ppo["safe_ratio_IDT_mean"]) == pytest.approx(want, rel=1e-5)
     # LB's ODT column is the odt-sim log; an IL run without ODT logs leaves it empty
-    lb_ppo = rows[3]
+    lb_ppo = rows[4]
     v = load_log(log_path(runs[3], "odt-sim")).metrics["policy"]["rotation_error_deg"]
     assert float(lb_ppo["rotation_error_deg_ODT_mean"]) == pytest.approx(float(v.mean()), rel=1e-5)
     assert lb_act["side_error_mm_IDT_n"] == str(TRIALS) and lb_act["side_error_mm_ODT_n"] == ""
     # the expert does not depend on the run: its MB episodes count once, not three times
-    assert rows[2]["side_error_mm_IDT_n"] == str(TRIALS)
+    assert rows[3]["side_error_mm_IDT_n"] == str(TRIALS)
     md = a.read_text()
     assert "surgery-ppo-physical-s1 (seed 1)" in md and "navigation" not in md.split("Runs:")[1]
     assert "| MB | PPO + SF | 2.17 | 8.94 |" in md  # the paper's values beside ours

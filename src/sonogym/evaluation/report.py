@@ -81,7 +81,17 @@ PAPER_NEW_PATIENT: dict[str, tuple[str, ...]] = {
     "ACT": ("20.7 ± 15.6", "15.4 ± 3.92", "7.64 ± 2.85", "72.06"),
 }
 #: Method order in tables and charts (others follow alphabetically).
-METHOD_ORDER = ("PPO", "PPO + SF", "PPO-Lag", "A2C", "ACT", "DP", "expert", "heuristic")
+METHOD_ORDER = (
+    "PPO",
+    "PPO + SF",
+    "PPO + SF, filter off",
+    "PPO-Lag",
+    "A2C",
+    "ACT",
+    "DP",
+    "expert",
+    "heuristic",
+)
 
 
 @dataclass(frozen=True)
@@ -108,6 +118,8 @@ class Cell:
 def _method(controller: str, meta: dict) -> str | None:
     if controller == "policy":
         return algo_label(meta["algo"])
+    if controller == "unfiltered":  # a ppo-sf run's policy without its filter
+        return f"{algo_label(meta['algo'])}, filter off"
     if controller == "expert":
         return expert_label(meta["task"])
     return "random" if controller == "random" else None
@@ -126,7 +138,7 @@ def collect_cells(task: str, logs: list[tuple[Path, EpisodeLog]]) -> list[Cell]:
             method = _method(controller, meta)
             if method is None:
                 continue
-            if controller != "policy":  # run-independent: count each test setting once
+            if controller not in ("policy", "unfiltered"):  # run-independent: count once
                 key = (controller, json.dumps(meta["test_env"], sort_keys=True),
                        meta["eval_seed"], meta["trials"], meta["protocol"])  # fmt: skip
                 if key in seen_fixed:

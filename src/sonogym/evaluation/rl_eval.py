@@ -30,6 +30,9 @@ from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, 
 from sonogym.runs import atomic_write_text, to_jsonable
 
 CONTROLLERS = ("policy", "expert", "random")
+#: a ``ppo-sf`` run's policy without its safety filter (the PPO it trained: the filter acts
+#: only at test time), evaluated beside the filtered one by default
+UNFILTERED = "unfiltered"
 
 
 def evaluate_run(
@@ -66,10 +69,13 @@ def evaluate_run(
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
     from sonogym.evaluation.protocols import protocol as get_protocol
 
-    unknown = sorted(set(controllers) - set(CONTROLLERS))
-    if unknown:
-        raise ValueError(f"unknown controllers {unknown}; choose from {list(CONTROLLERS)}")
     trained = load_run(run)
+    known = CONTROLLERS + ((UNFILTERED,) if trained.algo == "ppo-sf" else ())
+    unknown = sorted(set(controllers) - set(known))
+    if unknown:
+        raise ValueError(f"unknown controllers {unknown}; choose from {list(known)}")
+    if trained.algo == "ppo-sf" and controllers == CONTROLLERS:
+        controllers = ("policy", UNFILTERED, "expert", "random")
     checkpoint = Path(checkpoint) if checkpoint is not None else newest_checkpoint(trained)
     proto = get_protocol(protocol or "idt", held_out_patients)
     trials = proto.trials if trials is None else trials
@@ -139,10 +145,15 @@ def controller_policy(
     name: str, env, trained: TrainedRun, seed: int, device: str = "cpu", checkpoint=None
 ):
     """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy (its
-    ``checkpoint``, default the newest readable), the task's expert (or heuristic), or uniform
-    random actions from ``seed``."""
+    ``checkpoint``, default the newest readable; ``unfiltered``: a ``ppo-sf`` run's policy
+    without its safety filter), the task's expert (or heuristic), or uniform random actions
+    from ``seed``."""
     if name == "policy":
         return run_policy(trained, env, checkpoint, device)
+    if name == UNFILTERED and trained.algo == "ppo-sf":
+        policy = run_policy(trained, env, checkpoint, device)
+        policy.critic = None  # the same weights, acting without the filter
+        return policy
     if name == "expert":
         from sonogym.envs.policy import ExpertPolicy
         from sonogym.envs.registry import get_task

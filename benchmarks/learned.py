@@ -64,12 +64,12 @@ def simulation_table(args) -> None:
 
 
 def env_table(args) -> None:
-    from sonogym.envs.navigation import NavigationEnv
+    from sonogym.envs.registry import make_vec
 
     print(f"\n{'simulator':9} {'envs':>5} {'step ms':>9} {'env-steps/s':>12}")
     for n in args.env_counts:
         for sim in ("learned", "physical"):
-            env = NavigationEnv(n, simulator=sim, patients=(args.seed,))
+            env = make_vec("navigation", n, simulator=sim, patients=(args.seed,))
             env.reset(seed=0)
             a = torch.zeros(n, 3)
             for _ in range(2):

@@ -81,3 +81,15 @@ def test_gaussian_quantiles():
     assert q.shape == (1024,)
     assert q.mean().abs() < 1e-6 and q.pow(2).mean() == pytest.approx(1.0, abs=1e-5)
     assert torch.all(q[1:] > q[:-1])
+
+
+def test_seed_mix_is_splitmix64_bit_for_bit_without_a_host_loop():
+    from sonogym.ultrasound.speckle import splitmix64
+
+    s = torch.randint(0, 2**31, (2000,), generator=torch.Generator().manual_seed(0))
+    s[:3] = torch.tensor([0, 1, 2**31 - 1])
+    for salt in (0, 12345, 2**40):
+        want = torch.tensor([splitmix64(int(v) * 1000003 + salt) for v in s.tolist()])
+        assert torch.equal(seed_mix(s, salt), want)
+    # elementwise: any shape gives the same keys
+    assert torch.equal(seed_mix(s.view(40, 50)).view(-1), seed_mix(s))

@@ -312,7 +312,8 @@ def build_agent(
     write_interval: int = 0,
     checkpoint_interval: int = 0,
 ):
-    """The skrl agent (PPO or A2C) for ``algo`` on ``cfg.task``, logging into ``out``.
+    """The skrl agent for ``algo`` (PPO, A2C, or PPO with a safety filter's cost critic or a
+    Lagrangian cost value) on ``cfg.task``, logging into ``out``.
 
     ``write_interval`` / ``checkpoint_interval`` are in env steps (0 disables). Unsupported
     pairs raise ``ValueError`` naming the supported algorithms. ``ppo-sf`` needs

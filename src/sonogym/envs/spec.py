@@ -51,12 +51,15 @@ class Metric:
 @dataclass(frozen=True)
 class Track:
     """The trajectory evaluation logs per step: ``fn(env, info)`` -> (N, D) in ``units``;
-    ``plane`` names the two columns the trajectory figure draws (horizontal, vertical)."""
+    ``plane`` names the two columns the trajectory figure draws (horizontal, vertical);
+    ``axis_line``: the figure also draws the vertical line through the goal (a planned
+    trajectory along the vertical axis)."""
 
     columns: tuple[str, ...]
     units: tuple[str, ...]
     fn: Callable[[Any, dict[str, Any]], torch.Tensor]
     plane: tuple[str, str]
+    axis_line: bool = False
 
 
 @dataclass(frozen=True)

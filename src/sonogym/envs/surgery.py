@@ -557,7 +557,7 @@ SPEC = TaskSpec(
         Metric("rotation_error_deg", "rot err", "deg"),
         Metric("safe_ratio", "safe ratio", "%", 100.0, better="higher"),
     ),
-    track=Track(("x", "y", "z"), ("mm", "mm", "mm"), drill_track, plane=("x", "z")),
+    track=Track(("x", "y", "z"), ("mm", "mm", "mm"), drill_track, plane=("x", "z"), axis_line=True),
     demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
     training=TrainingDefaults(
         algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),

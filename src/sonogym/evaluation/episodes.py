@@ -163,7 +163,7 @@ def plot_trajectories(
             ax.plot(p[0, i], p[0, j], "o", ms=3, color=color)
             ax.plot(p[-1, i], p[-1, j], "x", ms=5, color=color)
         ax.plot(0, 0, "*", ms=12, color="red", label="goal")
-        if task == "surgery":
+        if get_task(task).track.axis_line:
             ax.axvline(0, color="grey", lw=0.6, ls="--")  # the planned trajectory
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel(f"{h} [{units[i]}]")

@@ -40,10 +40,6 @@ class SurfaceStep:
     reached: torch.Tensor
     reachable: torch.Tensor
 
-    def rows(self, ids) -> SurfaceStep:
-        """The step of the arms ``ids`` only."""
-        return SurfaceStep(**{k: v[ids] for k, v in vars(self).items()})
-
 
 class SurfaceController:
     """Keeps a probe arm's probe face on the skin at commanded surface poses.

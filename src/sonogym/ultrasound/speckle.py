@@ -62,10 +62,20 @@ def splitmix64(x: int) -> int:
     return _signed(x ^ (x >> 31))
 
 
+def _shift_right(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Logical (unsigned) right shift of int64 ``x`` by ``k`` bits (torch's ``>>`` is
+    arithmetic)."""
+    return (x >> k) & ((1 << (64 - k)) - 1)
+
+
 def seed_mix(seed: torch.Tensor, salt: int = 0) -> torch.Tensor:
-    """(B,) int64 seeds -> (B,) well-mixed int64 keys (``salt`` separates independent fields)."""
-    vals = [splitmix64(int(s) * 1000003 + salt) for s in seed.tolist()]
-    return torch.tensor(vals, dtype=torch.int64, device=seed.device)
+    """(B,) int64 seeds in [0, 2^31) -> (B,) well-mixed int64 keys (``salt`` separates
+    independent fields): ``splitmix64(seed * 1000003 + salt)`` bit for bit, on the tensor's
+    device (int64 products wrap modulo 2^64 as splitmix64's do), with no host round trip."""
+    x = seed.to(torch.int64) * 1000003 + (salt + _signed(0x9E3779B97F4A7C15))
+    x = (x ^ _shift_right(x, 30)) * _signed(0xBF58476D1CE4E5B9)
+    x = (x ^ _shift_right(x, 27)) * _signed(0x94D049BB133111EB)
+    return x ^ _shift_right(x, 31)
 
 
 def packed_coordinates(

@@ -9,7 +9,7 @@ PY=${PY:-python3}
 PIP=".venv/bin/python -m pip"
 if ! .venv/bin/python -c "import torch" 2>/dev/null; then
     if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
-        $PIP install "torch>=2.4"
+        $PIP install "torch>=2.6"
     else
         # The +cpu tag matters: without it pip may resolve the CUDA build from PyPI.
         $PIP install "torch==${SONOGYM_TORCH_VERSION:-2.13.0}+cpu" \

@@ -293,26 +293,40 @@ def il_train(
     out: Annotated[Path, typer.Option(help="Run folder (checkpoints, config.json, tb/).")],
     steps: Annotated[int | None, typer.Option(help="Optimiser steps in total.")] = None,
     preset: Annotated[
-        str, typer.Option(help="Policy size: cpu (default, documented) or paper (LeRobot's).")
-    ] = "cpu",
-    batch_size: Annotated[int, typer.Option(help="Samples per step (reference: 8).")] = 8,
+        str | None,
+        typer.Option(help="Policy size: cpu (default, documented) or paper (LeRobot's)."),
+    ] = None,
+    batch_size: Annotated[int | None, typer.Option(help="Samples per step (default 8).")] = None,
     image_size: Annotated[
         str | None,
         typer.Option(help="HxW px the images are resampled to (e.g. 100x75); default: as stored."),
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of init, sample order and noise.")] = 1000,
+    seed: Annotated[
+        int | None, typer.Option(help="Seed of init, sample order and noise (default 1000).")
+    ] = None,
     threads: Annotated[int | None, typer.Option(help="torch CPU threads.")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
-    resume: Annotated[bool, typer.Option(help="Continue the run in --out.")] = False,
+    resume: Annotated[
+        bool,
+        typer.Option(help="Continue the run in --out (options left out: the run's)."),
+    ] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
 ) -> None:
     """Train ACT or Diffusion Policy on an expert dataset; evaluate with sonogym eval --run."""
     from sonogym.agents.presets import cpu_threads
-    from sonogym.imitation.run import make_config
+    from sonogym.imitation.run import config_from_dict, make_config, read_run_config
     from sonogym.imitation.train import ILTrainConfig, train_il
 
-    if steps is not None and steps < 1:
-        raise typer.BadParameter(f"--steps must be a positive integer, got {steps}")
+    for name, v in (("--steps", steps), ("--batch-size", batch_size)):
+        if v is not None and v < 1:
+            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    old = read_run_config(out) if resume and (out / "config.json").is_file() else None
+    if old is not None:  # what is left out continues as the run was trained
+        seed = old["seed"] if seed is None else seed
+        batch_size = old["train"]["batch_size"] if batch_size is None else batch_size
+        steps = old["train"]["steps"] if steps is None else steps
+    preset_given = preset is not None
+    preset = preset or "cpu"
     overrides = {}
     if image_size is not None:
         h, sep, w = image_size.lower().partition("x")
@@ -322,7 +336,10 @@ def il_train(
             )
         overrides["image_size"] = (int(h), int(w))
     try:
-        policy_config = make_config(policy, preset, **overrides) if overrides else None
+        if old is not None and not (overrides or preset_given) and old["policy"] == policy:
+            policy_config = config_from_dict(policy, old["policy_config"])
+        else:
+            policy_config = make_config(policy, preset, **overrides) if overrides else None
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
     import torch
@@ -332,8 +349,8 @@ def il_train(
     )
     cfg = ILTrainConfig(data=str(data), out=str(out), policy=policy, preset=preset,
                         policy_config=policy_config, steps=steps or 10_000,
-                        batch_size=batch_size, seed=seed, device=device, resume=resume,
-                        force=force)  # fmt: skip
+                        batch_size=batch_size or 8, seed=1000 if seed is None else seed,
+                        device=device, resume=resume, force=force)  # fmt: skip
     res = train_il(cfg)
     typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
                f"evaluate with: sonogym eval --run {out}")  # fmt: skip
@@ -606,7 +623,7 @@ def main() -> None:
     """The ``sonogym`` entry point: bad input (a missing or malformed file, an invalid option,
     a folder that already holds a run) ends with one line naming the problem and the fix, not a
     traceback; an interrupted training run (Ctrl-C) has saved a checkpoint and exits with 130."""
-    from sonogym.agents.train import TrainingInterrupted
+    from sonogym.runs import TrainingInterrupted
 
     try:
         app()

@@ -23,6 +23,11 @@ class OutputExistsError(FileExistsError):
     """An output folder already holds something; the message says how to continue or replace."""
 
 
+class TrainingInterrupted(Exception):
+    """Ctrl-C during training (RL or IL): a checkpoint was saved; the message says how to
+    resume."""
+
+
 def prepare_output(
     path: str | Path, resume: bool, force: bool, what: str = "run", marker: str | None = None
 ) -> bool:
@@ -92,7 +97,9 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 def atomic_write_json(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=indent, ensure_ascii=False) + "\n")
+    # ASCII with escapes: a path that is not valid UTF-8 (surrogate-escaped by Python) round
+    # trips as \udcXX instead of failing to encode
+    return atomic_write_text(path, json.dumps(obj, indent=indent, ensure_ascii=True) + "\n")
 
 
 def atomic_torch_save(obj: Any, path: str | Path) -> Path:

@@ -49,7 +49,13 @@ from sonogym.agents.configs import (
 )
 from sonogym.agents.networks import make_models
 from sonogym.envs.registry import make_vec
-from sonogym.runs import atomic_torch_save, atomic_write_json, prepare_output, read_json
+from sonogym.runs import (
+    TrainingInterrupted,
+    atomic_torch_save,
+    atomic_write_json,
+    prepare_output,
+    read_json,
+)
 
 
 @dataclass(frozen=True)
@@ -57,10 +63,6 @@ class TrainResult:
     out: Path  # run directory
     checkpoint: Path  # the final checkpoint
     steps: int  # env steps per env done in total (including resumed ones)
-
-
-class TrainingInterrupted(Exception):
-    """Ctrl-C during training: a checkpoint was saved; the message says how to resume."""
 
 
 def make_env(cfg: TaskRLConfig, num_envs: int, device: str | torch.device):

@@ -59,12 +59,12 @@ def load_run(run: str | Path) -> TrainedRun:
 def newest_checkpoint(run: TrainedRun, warn=None) -> Path:
     """The checkpoint evaluation uses by default: the newest readable one."""
     if run.kind == "il":
-        from sonogym.imitation.run import checkpoints
+        from sonogym.imitation.run import newest_readable_checkpoint
 
-        found = checkpoints(run.path)
-        if not found:
-            raise FileNotFoundError(f"no checkpoints/step_*.pt in {run.path}")
-        return found[-1][1]
+        found = newest_readable_checkpoint(run.path, warn=warn)
+        if found is None:
+            raise FileNotFoundError(f"no readable checkpoints/step_*.pt in {run.path}")
+        return found[0]
     from sonogym.agents.checkpoint import latest_readable_checkpoint
 
     found = latest_readable_checkpoint(run.path, warn)

@@ -14,8 +14,8 @@ Every file is written to a temp name and renamed, so a killed run never leaves h
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,7 @@ import torch
 
 from sonogym.imitation import act, diffusion
 from sonogym.imitation.processor import PolicyFeatures
-from sonogym.runs import atomic_torch_save, atomic_write_json
+from sonogym.runs import atomic_torch_save, atomic_write_json, read_json
 
 POLICIES = ("act", "diffusion")
 RUN_KIND = "sonogym-il-run"
@@ -80,22 +80,63 @@ def save_checkpoint(run: Path, step: int, state: dict[str, Any]) -> Path:
     return atomic_torch_save(state, Path(run) / "checkpoints" / f"step_{step:09d}.pt")
 
 
+class ILCheckpointError(ValueError):
+    """An IL checkpoint cannot be read; the message names it and says what to do."""
+
+
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
-    """A checkpoint's dict, loaded with ``weights_only=True`` (tensors and plain containers)."""
-    return torch.load(path, map_location=device, weights_only=True)
+    """A checkpoint's dict, loaded with ``weights_only=True`` (tensors and plain containers);
+    a missing, empty, truncated or foreign file raises ``ILCheckpointError`` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # empty, truncated, not a torch file, or pickled objects
+        detail = str(e).splitlines()[0] if str(e) else "no detail"
+        raise ILCheckpointError(
+            f"{path} is not a readable IL checkpoint ({type(e).__name__}: {detail}); pick "
+            "another with --checkpoint, or resume from an earlier one"
+        ) from None
+    if not isinstance(state, dict) or "model" not in state or "step" not in state:
+        raise ILCheckpointError(f"{path} is not an IL checkpoint (no 'model' and 'step')")
+    return state
+
+
+def newest_readable_checkpoint(
+    run: str | Path, device: str | torch.device = "cpu", warn=None
+) -> tuple[Path, dict[str, Any]] | None:
+    """(path, state) of the run's newest checkpoint that reads, or None; each unreadable newer
+    one (a save killed half-way, a corrupt file) is skipped with a warning naming it (``warn``:
+    a callable taking the message; default ``warnings.warn``)."""
+    for _, path in reversed(checkpoints(run)):
+        try:
+            return path, load_checkpoint(path, device)
+        except (ILCheckpointError, OSError) as e:
+            (warn or (lambda m: warnings.warn(m, stacklevel=3)))(
+                f"skipping unreadable checkpoint: {e}"
+            )
+    return None
 
 
 def write_run_config(run: Path, cfg: dict[str, Any]) -> None:
     atomic_write_json(Path(run) / "config.json", {"kind": RUN_KIND, **cfg}, indent=4)
 
 
+#: keys every IL run's config.json has (what resume and evaluation read)
+RUN_CONFIG_KEYS = ("kind", "policy", "policy_config", "train", "features", "stats")
+
+
 def read_run_config(run: str | Path) -> dict[str, Any]:
+    """An IL run's ``config.json``, with a clear error naming the file if it is missing,
+    malformed, incomplete or not an IL run's."""
     path = Path(run) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} not found: is {run} a `sonogym il-train` run folder?")
-    cfg = json.loads(path.read_text())
+    cfg = read_json(path, "`sonogym il-train` run folder")
     if cfg.get("kind") != RUN_KIND:
         raise ValueError(f"{path} is not an IL run config (kind {cfg.get('kind')!r})")
+    missing = [k for k in RUN_CONFIG_KEYS if k not in cfg]
+    if missing:
+        raise ValueError(f"{path} lacks {missing}: it was not written by `sonogym il-train`")
     return cfg
 
 
@@ -122,11 +163,12 @@ def load_model(
     }
     model = make_policy(config, features, stats).to(device)
     if checkpoint is None:
-        found = checkpoints(run)
-        if not found:
-            raise FileNotFoundError(f"no checkpoints/step_*.pt in {run}")
-        checkpoint = found[-1][1]
-    state = load_checkpoint(checkpoint, device)
+        found = newest_readable_checkpoint(run, device)
+        if found is None:
+            raise FileNotFoundError(f"no readable checkpoints/step_*.pt in {run}")
+        state = found[1]
+    else:
+        state = load_checkpoint(checkpoint, device)
     model.load_state_dict(state["model"])
     model.eval()
     return model, cfg

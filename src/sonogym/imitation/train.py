@@ -30,7 +30,7 @@ from sonogym.imitation import run as runio
 from sonogym.imitation.lerobot_format import read_info
 from sonogym.imitation.processor import PolicyFeatures, stats_subset
 from sonogym.imitation.reader import LeRobotFrames, load_stats
-from sonogym.runs import prepare_output
+from sonogym.runs import TrainingInterrupted, prepare_output
 
 
 @dataclass(frozen=True)
@@ -120,11 +120,36 @@ def _recording(data: Path) -> dict:
     return read_recording(data) if (data / META).is_file() else {}
 
 
-def _prepare_out(cfg: ILTrainConfig) -> tuple[Path, list[tuple[int, Path]]]:
+def _prepare_out(cfg: ILTrainConfig):
+    """The run folder, and on resume its config and newest readable checkpoint's state (read
+    before anything is written)."""
     out = Path(cfg.out)
     prepare_output(out, cfg.resume, cfg.force, what="`sonogym il-train` run", marker="config.json")
-    found = runio.checkpoints(out) if cfg.resume else []
-    return out, found
+    if not cfg.resume:
+        return out, None, None
+    old = runio.read_run_config(out)
+    found = runio.newest_readable_checkpoint(out, cfg.device)
+    return out, old, None if found is None else found[1]
+
+
+def _resume_conflicts(old: dict, new: dict) -> list[str]:
+    """What a resumed run would change that defines the run, by name (run's value after)."""
+    out = []
+    for key in ("policy", "seed"):
+        if old.get(key) != new.get(key):
+            out.append(f"{key} {new.get(key)!r} (run: {old.get(key)!r})")
+    for key in ("batch_size", "episodes"):
+        if old["train"].get(key) != new["train"].get(key):
+            out.append(f"{key} {new['train'].get(key)!r} (run: {old['train'].get(key)!r})")
+    if old.get("dataset", {}).get("root") != new["dataset"]["root"]:
+        out.append(f"data {new['dataset']['root']!r} (run: {old.get('dataset', {}).get('root')!r})")
+    pc_old, pc_new = old["policy_config"], new["policy_config"]
+    for k in sorted(set(pc_old) | set(pc_new)):
+        if pc_old.get(k) != pc_new.get(k):
+            out.append(f"policy_config.{k} {pc_new.get(k)!r} (run: {pc_old.get(k)!r})")
+    if old["features"] != new["features"]:
+        out.append("the dataset's features")
+    return out
 
 
 def train_il(cfg: ILTrainConfig) -> ILTrainResult:
@@ -133,7 +158,7 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     from tqdm import tqdm
 
     pcfg = cfg.resolved_policy_config()
-    out, found = _prepare_out(cfg)
+    out, old, state = _prepare_out(cfg)
     data = Path(cfg.data).resolve()
     info = read_info(data)
     stats = load_stats(data)
@@ -173,13 +198,19 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     }
     run_cfg = json.loads(json.dumps(run_cfg))  # the form config.json holds (tuples as lists)
     start = 0
-    if found:
-        old = runio.read_run_config(out)
-        if old["policy"] != cfg.policy or old["policy_config"] != run_cfg["policy_config"]:
-            raise ValueError(f"{out} was trained with another policy config; cannot resume it")
-        if old["features"] != run_cfg["features"]:
-            raise ValueError(f"{out} was trained on other features; cannot resume it")
-        state = runio.load_checkpoint(found[-1][1], dev)
+    if old is not None:
+        conflicts = _resume_conflicts(old, run_cfg)
+        if conflicts:
+            raise ValueError(
+                f"{out} cannot be resumed with {', '.join(conflicts)}: leave those options out "
+                "(the run's are used) or train into a new folder"
+            )
+        if state is not None and int(state["step"]) > cfg.steps:
+            raise ValueError(
+                f"{out} has trained {int(state['step'])} steps already; --steps is the total, "
+                f"so give more than that to continue (got {cfg.steps})"
+            )
+    if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
@@ -223,6 +254,20 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
         total=cfg.steps, initial=start, disable=not cfg.progress, desc=f"il-train {cfg.policy}"
     )
     step = start
+
+    def save(step: int) -> Path:
+        return runio.save_checkpoint(
+            out,
+            step,
+            {
+                "model": model.state_dict(),
+                "optimizer": opt.state_dict(),
+                "scheduler": sched.state_dict(),
+                "step": step,
+                "rng": {"model": gen.get_state(), "loader": loader_gen.get_state()},
+            },
+        )
+
     try:
         while step < cfg.steps:
             batch = {k: v.to(dev, non_blocking=True) for k, v in next(it).items()}
@@ -247,18 +292,18 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
                 bar.set_postfix(loss=f"{last_loss:.4f}")
                 sums, n_sum = {}, 0
             if step % cfg.save_every == 0 or step == cfg.steps:
-                runio.save_checkpoint(
-                    out,
-                    step,
-                    {
-                        "model": model.state_dict(),
-                        "optimizer": opt.state_dict(),
-                        "scheduler": sched.state_dict(),
-                        "step": step,
-                        "rng": {"model": gen.get_state(), "loader": loader_gen.get_state()},
-                    },
-                )
+                save(step)
             bar.update(1)
+    except KeyboardInterrupt:
+        bar.close()
+        path = save(step)
+        msg = (
+            f"interrupted after {step} of {cfg.steps} steps; saved {path}. Resume with: sonogym "
+            f"il-train --policy {cfg.policy} --data {cfg.data} --out {out} --steps {cfg.steps} "
+            "--resume"
+        )
+        print(msg)
+        raise TrainingInterrupted(msg) from None
     finally:
         bar.close()
         tb.close()

@@ -229,3 +229,12 @@ def test_navigation_report_draws_the_bar_chart_and_curves(tmp_path):
     assert "navigation-ppo-learned-s0 (seed 0)" in md.read_text()
     with pytest.raises(FileNotFoundError, match="no reconstruction runs"):
         build_report("reconstruction", [root], tmp_path / "x")
+
+
+def test_policies_trained_on_the_privileged_state_are_named_so():
+    from sonogym.evaluation.report import _method
+
+    meta = {"task": "surgery", "algo": "ppo", "train_env": {"obs_mode": "state"}}
+    assert _method("policy", meta) == "PPO (state)"
+    assert _method("policy", {**meta, "train_env": {}}) == "PPO"
+    assert _method("unfiltered", {**meta, "algo": "ppo-sf"}) == "PPO + SF (state), filter off"

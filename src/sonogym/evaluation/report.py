@@ -116,10 +116,12 @@ class Cell:
 
 
 def _method(controller: str, meta: dict) -> str | None:
+    # a policy that saw the privileged state, not the paper's observation, is named so
+    state = " (state)" if meta.get("train_env", {}).get("obs_mode") == "state" else ""
     if controller == "policy":
-        return algo_label(meta["algo"])
+        return algo_label(meta["algo"]) + state
     if controller == "unfiltered":  # a ppo-sf run's policy without its filter
-        return f"{algo_label(meta['algo'])}, filter off"
+        return f"{algo_label(meta['algo'])}{state}, filter off"
     if controller == "expert":
         return expert_label(meta["task"])
     return "random" if controller == "random" else None

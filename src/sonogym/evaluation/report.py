@@ -172,8 +172,9 @@ def collect_cells(task: str, logs: list[tuple[Path, EpisodeLog]]) -> list[Cell]:
 
 
 def _order(method: str) -> tuple[int, str]:
+    base = method.replace(" (state)", "")  # beside the method it is a variant of
     return (
-        (METHOD_ORDER.index(method), "") if method in METHOD_ORDER else (len(METHOD_ORDER), method)
+        (METHOD_ORDER.index(base), method) if base in METHOD_ORDER else (len(METHOD_ORDER), method)
     )
 
 

@@ -14,10 +14,24 @@ $S train --task navigation --algo ppo $T --steps 4512 --obs-downsample 4 --proto
     --out runs/nav-ppo-small-lb-s0
 # Reconstruction, submodular PPO.
 $S train --task reconstruction --algo ppo $T --steps 4000 --out runs/recon-ppo-small-s0
-# Surgery: equal-length PPO, PPO + safety filter, PPO-Lagrangian.
-for a in ppo ppo-sf ppo-lag; do
-  $S train --task surgery --algo $a $T --steps 6000 --out runs/surgery-$a-small-s0
+# Surgery from the privileged state (issue 14's first step): cpu preset, 3 seeds, ~25 min each.
+for s in 0 1 2; do
+  $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 120000 \
+      --out runs/surg-state-s$s
 done
+# Imitation learning: expert datasets, ACT and Diffusion Policy (navigation at 100 x 75).
+$S record --task navigation --preset mb --episodes 200 --envs 16 --out runs/ds-nav-mb
+$S il-train --policy act --data runs/ds-nav-mb --image-size 100x75 --steps 75000 --threads 1 \
+    --out runs/il-nav-act
+$S il-train --policy diffusion --data runs/ds-nav-mb --image-size 100x75 --steps 15000 \
+    --threads 1 --out runs/il-nav-dp
+$S record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb
+$S il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 --out runs/il-surg-act
+# Seeds on Ray Tune: PPO navigation x 3 seeds and one A2C seed.
+$S sweep --task navigation --algo ppo --seeds 3 --preset cpu --steps 2400 --max-concurrent 1 \
+    --out runs/sweep-nav-ppo
+$S sweep --task navigation --algo a2c --seeds 1 --preset cpu --steps 2400 --max-concurrent 1 \
+    --out runs/sweep-nav-a2c
 
 # 100-episode evaluations (eval seed 1000) per protocol.
 $S eval --run runs/nav-ppo-small-s0 --protocol idt
@@ -25,16 +39,20 @@ $S eval --run runs/nav-ppo-small-s0 --protocol odt-patient
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol idt
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim
 $S eval --run runs/recon-ppo-small-s0 --protocol idt
-for a in ppo ppo-sf ppo-lag; do
-  $S eval --run runs/surgery-$a-small-s0 --protocol idt
-  $S eval --run runs/surgery-$a-small-s0 --protocol odt-patient
+for r in runs/surg-state-s0 runs/surg-state-s1 runs/surg-state-s2 runs/il-surg-act; do
+  $S eval --run $r --protocol idt --envs 50
+  $S eval --run $r --protocol odt-patient --envs 50
 done
+$S eval --run runs/il-nav-act --trials 100 --envs 50
+$S eval --run runs/il-nav-dp --trials 100 --envs 50
 
 # Tables and figures (from the saved episode logs and TensorBoard files only).
 $S report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 \
     --out docs/results/navigation
 $S report --task reconstruction --runs runs/recon-ppo-small-s0 --out docs/results/reconstruction
-$S report --task surgery --runs runs/surgery-ppo-small-s0 runs/surgery-ppo-sf-small-s0 \
-    runs/surgery-ppo-lag-small-s0 --out docs/results/surgery
+$S report --task surgery --runs runs/surg-state-s0 runs/surg-state-s1 runs/surg-state-s2 \
+    runs/il-surg-act --out docs/results/surgery
+$S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/results/navigation-sweep \
+    --metric "Episode / return" --metric "Episode / position_error_mm"
 $S plot --runs runs/nav-ppo-small-s0 --out docs/results/navigation-curves \
     --metric "Episode / return" --metric "Episode / position_error_mm"

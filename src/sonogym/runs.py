@@ -23,6 +23,29 @@ class OutputExistsError(FileExistsError):
     """An output folder already holds something; the message says how to continue or replace."""
 
 
+class CheckpointError(ValueError):
+    """A checkpoint file cannot be read; the message names it and says what to do."""
+
+
+def load_weights(path: str | Path, device: Any = "cpu", what: str = "checkpoint") -> Any:
+    """``torch.load(path, weights_only=True)``: tensors, numbers, strings and containers, never
+    pickled code; a missing file raises ``FileNotFoundError``, an empty, truncated or foreign
+    one ``CheckpointError`` naming it (``what``: the kind of file, for the message)."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} not found")
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # truncated, empty, not a torch file, or pickled objects
+        detail = str(e).splitlines()[0] if str(e) else "no detail"
+        raise CheckpointError(
+            f"{path} is not a readable {what} ({type(e).__name__}: {detail}); pick another "
+            "with --checkpoint, or resume from an earlier one"
+        ) from None
+
+
 class TrainingInterrupted(Exception):
     """Ctrl-C during training (RL or IL): a checkpoint was saved; the message says how to
     resume."""

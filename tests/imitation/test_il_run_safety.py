@@ -10,7 +10,6 @@ import torch
 
 from sonogym.imitation.act import ACTConfig
 from sonogym.imitation.run import (
-    ILCheckpointError,
     checkpoints,
     load_checkpoint,
     load_model,
@@ -18,7 +17,7 @@ from sonogym.imitation.run import (
     read_run_config,
 )
 from sonogym.imitation.train import ILTrainConfig, train_il
-from sonogym.runs import TrainingInterrupted, atomic_write_json, read_json
+from sonogym.runs import CheckpointError, TrainingInterrupted, atomic_write_json, read_json
 
 TINY_ACT = ACTConfig.cpu(
     chunk_size=4, n_action_steps=4, backbone_widths=(8, 16), backbone_blocks=(1, 1),
@@ -39,7 +38,7 @@ def test_torn_newest_checkpoint_is_skipped_by_name(blob_dataset, tmp_path):
     train_il(_cfg(blob_dataset, run))
     torn = run / "checkpoints" / "step_000000030.pt"
     torn.write_bytes(b"")  # a save killed half-way by an older version
-    with pytest.raises(ILCheckpointError, match="step_000000030.pt is not a readable"):
+    with pytest.raises(CheckpointError, match="step_000000030.pt is not a readable"):
         load_checkpoint(torn)
     warned = []
     path, state = newest_readable_checkpoint(run, warn=warned.append)

@@ -14,28 +14,16 @@ import torch
 from sonogym.agents.adapter import ObsLayout, SkrlEnvAdapter
 from sonogym.agents.networks import SharedActorCritic, make_models
 from sonogym.envs.policy import StatelessPolicy
+from sonogym.runs import CheckpointError, load_weights
 
 _CKPT = re.compile(r"agent_(\d+)\.pt$")
-
-
-class CheckpointError(ValueError):
-    """A checkpoint file cannot be read; the message names it and says what to do."""
 
 
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
     """An agent checkpoint (skrl's ``{module name: state}`` dict), read without unpickling
     code (``weights_only=True``): tensors, numbers, strings and containers only."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} not found")
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except Exception as e:  # truncated, empty, not a torch file, or pickled objects
-        raise CheckpointError(
-            f"{path} is not a readable agent checkpoint ({type(e).__name__}: "
-            f"{str(e).splitlines()[0] if str(e) else 'no detail'}); pick another with "
-            "--checkpoint, or resume from an earlier one"
-        ) from None
+    state = load_weights(path, device, "agent checkpoint")
     if not isinstance(state, dict) or "policy" not in state:
         raise CheckpointError(f"{path} is not an agent checkpoint (no 'policy' entry)")
     return state

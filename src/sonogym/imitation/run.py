@@ -23,7 +23,13 @@ import torch
 
 from sonogym.imitation import act, diffusion
 from sonogym.imitation.processor import PolicyFeatures
-from sonogym.runs import atomic_torch_save, atomic_write_json, read_json
+from sonogym.runs import (
+    CheckpointError,
+    atomic_torch_save,
+    atomic_write_json,
+    load_weights,
+    read_json,
+)
 
 POLICIES = ("act", "diffusion")
 RUN_KIND = "sonogym-il-run"
@@ -80,26 +86,14 @@ def save_checkpoint(run: Path, step: int, state: dict[str, Any]) -> Path:
     return atomic_torch_save(state, Path(run) / "checkpoints" / f"step_{step:09d}.pt")
 
 
-class ILCheckpointError(ValueError):
-    """An IL checkpoint cannot be read; the message names it and says what to do."""
-
-
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
     """A checkpoint's dict, loaded with ``weights_only=True`` (tensors and plain containers);
-    a missing, empty, truncated or foreign file raises ``ILCheckpointError`` naming it."""
+    a missing file raises ``FileNotFoundError``, an empty, truncated or foreign one
+    ``CheckpointError`` naming it."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} not found")
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except Exception as e:  # empty, truncated, not a torch file, or pickled objects
-        detail = str(e).splitlines()[0] if str(e) else "no detail"
-        raise ILCheckpointError(
-            f"{path} is not a readable IL checkpoint ({type(e).__name__}: {detail}); pick "
-            "another with --checkpoint, or resume from an earlier one"
-        ) from None
+    state = load_weights(path, device, "IL checkpoint")
     if not isinstance(state, dict) or "model" not in state or "step" not in state:
-        raise ILCheckpointError(f"{path} is not an IL checkpoint (no 'model' and 'step')")
+        raise CheckpointError(f"{path} is not an IL checkpoint (no 'model' and 'step')")
     return state
 
 
@@ -112,7 +106,7 @@ def newest_readable_checkpoint(
     for _, path in reversed(checkpoints(run)):
         try:
             return path, load_checkpoint(path, device)
-        except (ILCheckpointError, OSError) as e:
+        except (CheckpointError, OSError) as e:
             (warn or (lambda m: warnings.warn(m, stacklevel=3)))(
                 f"skipping unreadable checkpoint: {e}"
             )

@@ -377,7 +377,9 @@ def sweep(
     task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
     out: Annotated[Path, typer.Option(help="Sweep folder (sweep.md/csv, runs/, tune/, plots/).")],
     algo: Annotated[str, typer.Option(help="ppo, a2c; ppo-sf, ppo-lag (surgery).")] = "ppo",
-    seeds: Annotated[int, typer.Option(help="Seeds per grid point (0, 1, ...).")] = 3,
+    seeds: Annotated[
+        int | None, typer.Option(help="Seeds per grid point (0, 1, ...; default 3).")
+    ] = None,
     grid: Annotated[
         list[str] | None,
         typer.Option(
@@ -385,7 +387,9 @@ def sweep(
             "init_log_std, ppo.<field>, a2c.<field>, env.<option>."
         ),
     ] = None,
-    samples: Annotated[int, typer.Option(help="Repetitions of the grid (Tune num_samples).")] = 1,
+    samples: Annotated[
+        int | None, typer.Option(help="Repetitions of the grid (Tune num_samples; default 1).")
+    ] = None,
     address: Annotated[
         str | None, typer.Option(help="An existing Ray cluster (ray://host:10001); default local.")
     ] = None,
@@ -418,6 +422,19 @@ def sweep(
                     ("--steps", steps), ("--max-concurrent", max_concurrent)):  # fmt: skip
         if v is not None and v < 1:
             raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    if resume:  # the sweep continues as sweep.json defines it: refuse what would change it
+        given = {"--seeds": seeds, "--grid": grid, "--samples": samples, "--preset": preset,
+                 "--envs": envs, "--steps": steps, "--net": net,
+                 "--obs-downsample": obs_downsample, "--obs-mode": obs_mode,
+                 "--simulator": simulator, "--learned-nets": learned_nets,
+                 "--patients": patients, "--phantom-spacing": phantom_spacing,
+                 "--threads": threads, "--device": device}  # fmt: skip
+        changed = [k for k, v in given.items() if v]
+        if changed:
+            raise typer.BadParameter(
+                f"--resume continues the sweep as {out / 'sweep.json'} defines it; leave out "
+                f"{', '.join(changed)} (or start a new sweep in another folder)"
+            )
     try:
         points = parse_grid(grid)
     except ValueError as e:
@@ -428,7 +445,8 @@ def sweep(
     options = dict(preset=preset or "auto", envs=envs, steps=steps, net=net,
                    obs_downsample=obs_downsample, threads=threads, device=device or "cpu",
                    env_kwargs=kw or None)  # fmt: skip
-    res = run_sweep(task, algo, out, seeds=seeds, grid=points, samples=samples, address=address,
+    res = run_sweep(task, algo, out, seeds=seeds or 3, grid=points, samples=samples or 1,
+                    address=address,
                     max_concurrent=max_concurrent, resume=resume, force=force, log=typer.echo,
                     **options)  # fmt: skip
     from sonogym.evaluation.curves import plot_curves

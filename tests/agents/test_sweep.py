@@ -73,3 +73,14 @@ def test_local_sweep_table_failure_and_resume(tmp_path):
     again = sweep("navigation", "ppo", out, resume=True, log=lambda m: None)
     assert {p: p.stat().st_mtime_ns for p in ckpts} == before  # nothing was retrained
     assert {r.name: r.status for r in again.trials} == {r.name: r.status for r in res.trials}
+
+
+def test_cli_resume_refuses_options_that_would_change_the_sweep(tmp_path):
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    res = CliRunner().invoke(app, ["sweep", "--task", "navigation", "--out", str(tmp_path),
+                                   "--resume", "--steps", "10", "--grid", "net=small"])  # fmt: skip
+    assert res.exit_code != 0
+    assert "leave out --grid, --steps" in res.output and "sweep.json" in res.output

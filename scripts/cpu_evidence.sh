@@ -56,3 +56,7 @@ $S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/result
     --metric "Episode / return" --metric "Episode / position_error_mm"
 $S plot --runs runs/nav-ppo-small-s0 --out docs/results/navigation-curves \
     --metric "Episode / return" --metric "Episode / position_error_mm"
+# RL and IL side by side (navigation bars)
+for s in 0 1 2; do $S eval --run runs/sweep-nav-ppo/runs/navigation-ppo-s$s --trials 100 --envs 50; done
+$S report --task navigation --runs runs/sweep-nav-ppo/runs runs/il-nav-act runs/il-nav-dp \
+    --out docs/results/navigation-il --no-curves

@@ -23,6 +23,25 @@ def test_save_then_load_gives_the_same_patient(small_phantom, tmp_path, combined
     assert q.meta["seed"] == 0
 
 
+def test_a_killed_save_leaves_no_truncated_file(small_phantom, tmp_path, monkeypatch):
+    import os
+
+    folder = tmp_path / "s"
+    save_totalsegmentator(small_phantom, folder)
+    before = (folder / "ct.nii.gz").read_bytes()
+
+    def killed(fd):  # the process dies with the new CT's bytes written, before the rename
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "fsync", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_totalsegmentator(small_phantom, folder)
+    monkeypatch.undo()
+    assert (folder / "ct.nii.gz").read_bytes() == before  # the old file, whole
+    assert not [p.name for p in folder.rglob("*") if ".tmp" in p.name]
+    assert torch.equal(load_totalsegmentator(folder, spacing=None).ct, small_phantom.ct)
+
+
 def _write_lps_anisotropic(p, folder, zoom=(2.0, 2.0, 3.0)):
     """Resample p onto an anisotropic grid stored in LPS orientation, per-class masks."""
     sp = p.spacing[0] * 1e3

@@ -18,6 +18,7 @@ given), a target vertebra cut by the field of view or of implausible size.
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
 import math
@@ -32,6 +33,7 @@ from scipy import ndimage
 
 from sonogym.anatomy import labels as L
 from sonogym.anatomy.patient import Patient, PatientError
+from sonogym.runs import atomic_write_bytes, atomic_write_text
 
 COMBINED_NAMES = ("combined_label_map", "labels")
 _FAT_HU = (-190.0, -30.0)  # HU window of adipose tissue
@@ -586,9 +588,16 @@ def _complete_soft_tissue(labels: np.ndarray, ct: np.ndarray, zooms) -> np.ndarr
 # ----------------------------------------------------------------------------- writing
 
 
+def _save_nifti(img: nib.Nifti1Image, path: Path) -> None:
+    """``img`` as a gzipped NIfTI at ``path``, written atomically (temporary file + rename: a
+    killed write never leaves a truncated file under the final name)."""
+    atomic_write_bytes(path, gzip.compress(img.to_bytes(), compresslevel=1, mtime=0))
+
+
 def save_totalsegmentator(patient: Patient, folder: str | Path, combined: bool = False) -> Path:
     """Write ``patient`` as ct.nii.gz + segmentations/<class>.nii.gz (or one combined map) and a
-    ``sonogym.json`` with its name and provenance. Loading the folder gives the same patient."""
+    ``sonogym.json`` with its name and provenance, each file atomically. Loading the folder gives
+    the same patient."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     aff = patient.affine.copy()
@@ -597,12 +606,12 @@ def save_totalsegmentator(patient: Patient, folder: str | Path, combined: bool =
     integral = bool(np.all(ct == np.round(ct))) and ct.min() >= -32768 and ct.max() <= 32767
     ct_img = nib.Nifti1Image(ct.astype(np.int16 if integral else np.float32), aff)
     ct_img.header.set_xyzt_units("mm", "sec")
-    nib.save(ct_img, str(folder / "ct.nii.gz"))
+    _save_nifti(ct_img, folder / "ct.nii.gz")
     labels = patient.labels.numpy()
     if combined:
         img = nib.Nifti1Image(labels, aff)
         img.header.set_xyzt_units("mm", "sec")
-        nib.save(img, str(folder / "combined_label_map.nii.gz"))
+        _save_nifti(img, folder / "combined_label_map.nii.gz")
     else:
         seg = folder / "segmentations"
         seg.mkdir(exist_ok=True)
@@ -611,8 +620,9 @@ def save_totalsegmentator(patient: Patient, folder: str | Path, combined: bool =
                 continue
             img = nib.Nifti1Image((labels == i).astype(np.uint8), aff)
             img.header.set_xyzt_units("mm", "sec")
-            nib.save(img, str(seg / f"{L.LABELS[i]}.nii.gz"))
-    (folder / "sonogym.json").write_text(
-        json.dumps({"name": patient.name, "meta": patient.meta}, indent=1, default=str)
+            _save_nifti(img, seg / f"{L.LABELS[i]}.nii.gz")
+    atomic_write_text(
+        folder / "sonogym.json",
+        json.dumps({"name": patient.name, "meta": patient.meta}, indent=1, default=str),
     )
     return folder

@@ -3,8 +3,10 @@ their own CT tries first (``sonogym demo --patient DIR``)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -49,3 +51,5 @@ def test_demo_runs_on_a_users_subject(tmp_path, task):
     assert res.exit_code == 0, res.output
     assert (tmp_path / f"{task}.mp4").stat().st_size > 0
     assert "position_error_mm" in (tmp_path / "metrics.md").read_text()
+    metrics = json.loads((tmp_path / "metrics.json").read_text())[task]["metrics"]
+    assert all(np.isfinite(m) and s == 0.0 for m, s in metrics.values())  # one env: no NaN std

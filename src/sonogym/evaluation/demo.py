@@ -56,10 +56,7 @@ def run_demo(
                 sheet.append((t + 1, img.cpu().numpy()))
         if final is None:
             raise RuntimeError(f"{name}: the episode did not end within {env.episode_length} steps")
-        metrics = {
-            k: (float(final[k].float().mean()), float(final[k].float().std()))
-            for k in (*task.metric_keys, "return")
-        }
+        metrics = {k: _mean_std(final[k]) for k in (*task.metric_keys, "return")}
         results[name] = {"envs": num_envs, "seconds": time.perf_counter() - t0, "metrics": metrics}
         _write_sheet(out / f"{name}_frames.png", sheet, name)
         _write_video(out / f"{name}.mp4", frames)
@@ -76,6 +73,12 @@ def _write_video(path: Path, frames: list[np.ndarray], fps: int = 30) -> None:
     with imageio.get_writer(path, fps=fps, codec="libx264", quality=7) as w:
         for f in frames:
             w.append_data(f)
+
+
+def _mean_std(values) -> tuple[float, float]:
+    """Mean and sample std over envs of a (N,) tensor (std 0 for one env, not NaN)."""
+    v = values.float()
+    return float(v.mean()), float(v.std()) if len(v) > 1 else 0.0
 
 
 def _write_sheet(path: Path, sheet: list[tuple[int, np.ndarray]], name: str) -> None:

@@ -23,7 +23,7 @@ done
 $S record --task navigation --preset mb --episodes 200 --envs 16 --out runs/ds-nav-mb
 $S il-train --policy act --data runs/ds-nav-mb --image-size 100x75 --steps 75000 --threads 1 \
     --out runs/il-nav-act
-$S il-train --policy diffusion --data runs/ds-nav-mb --image-size 100x75 --steps 15000 \
+$S il-train --policy diffusion --data runs/ds-nav-mb --image-size 100x75 --steps 32000 \
     --threads 1 --out runs/il-nav-dp
 $S record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb
 $S il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 --out runs/il-surg-act

@@ -121,8 +121,7 @@ def demo(
     video and metrics per task."""
     from sonogym.evaluation.demo import run_demo
 
-    if envs < 1:
-        raise typer.BadParameter(f"--envs must be a positive integer, got {envs}")
+    _check_positive(("--envs", envs))
     pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patient) if patient else None
     run_demo(out, num_envs=envs, seed=seed, tasks=tuple(task) if task else None, patients=pats,
              log=typer.echo)  # fmt: skip
@@ -206,10 +205,8 @@ def train(
         check_algo(task, algo)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
-    for name, v in (("--steps", steps), ("--envs", envs), ("--obs-downsample", obs_downsample),
-                    ("--threads", threads)):  # fmt: skip
-        if v is not None and v < 1:
-            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    _check_positive(("--steps", steps), ("--envs", envs), ("--obs-downsample", obs_downsample),
+                    ("--threads", threads))  # fmt: skip
     from sonogym.agents.presets import PRESETS
 
     if preset is not None and preset not in PRESETS:
@@ -278,9 +275,7 @@ def record(
     for imitation learning (sonogym il-train) and for LeRobot itself."""
     from sonogym.imitation.record import record as run_record
 
-    for name, v in (("--episodes", episodes), ("--envs", envs)):
-        if v is not None and v < 1:
-            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    _check_positive(("--episodes", episodes), ("--envs", envs))
     kw = _env_options(simulator, learned_nets, patients, phantom_spacing)
     run_record(task, out, episodes=episodes, preset=preset, envs=envs, env_kwargs=kw or None,
                seed=seed, resume=resume, force=force, log=typer.echo)  # fmt: skip
@@ -317,9 +312,7 @@ def il_train(
     from sonogym.imitation.run import config_from_dict, make_config, read_run_config
     from sonogym.imitation.train import ILTrainConfig, train_il
 
-    for name, v in (("--steps", steps), ("--batch-size", batch_size)):
-        if v is not None and v < 1:
-            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    _check_positive(("--steps", steps), ("--batch-size", batch_size))
     old = read_run_config(out) if resume and (out / "config.json").is_file() else None
     if old is not None:  # what is left out continues as the run was trained
         seed = old["seed"] if seed is None else seed
@@ -354,6 +347,14 @@ def il_train(
     res = train_il(cfg)
     typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
                f"evaluate with: sonogym eval --run {out}")  # fmt: skip
+
+
+def _check_positive(*options: tuple[str, int | None]) -> None:
+    """Refuse a given (not None) integer option below 1, naming it: none is silently
+    defaulted."""
+    for name, v in options:
+        if v is not None and v < 1:
+            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
 
 
 def _env_options(simulator, learned_nets, patients, phantom_spacing) -> dict:
@@ -418,10 +419,8 @@ def sweep(
     from sonogym.agents.sweep import sweep as run_sweep
 
     import_ray()  # says how to install Ray before anything else
-    for name, v in (("--seeds", seeds), ("--samples", samples), ("--envs", envs),
-                    ("--steps", steps), ("--max-concurrent", max_concurrent)):  # fmt: skip
-        if v is not None and v < 1:
-            raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+    _check_positive(("--seeds", seeds), ("--samples", samples), ("--envs", envs),
+                    ("--steps", steps), ("--max-concurrent", max_concurrent))  # fmt: skip
     if resume:  # the sweep continues as sweep.json defines it: refuse what would change it
         given = {"--seeds": seeds, "--grid": grid, "--samples": samples, "--preset": preset,
                  "--envs": envs, "--steps": steps, "--net": net,
@@ -429,7 +428,7 @@ def sweep(
                  "--simulator": simulator, "--learned-nets": learned_nets,
                  "--patients": patients, "--phantom-spacing": phantom_spacing,
                  "--threads": threads, "--device": device}  # fmt: skip
-        changed = [k for k, v in given.items() if v]
+        changed = [k for k, v in given.items() if v is not None]
         if changed:
             raise typer.BadParameter(
                 f"--resume continues the sweep as {out / 'sweep.json'} defines it; leave out "

@@ -385,7 +385,7 @@ def sweep(
         list[str] | None,
         typer.Option(
             help="key=v1,v2; repeatable. Keys: num_envs, net, obs_downsample, reward_scale, "
-            "init_log_std, ppo.<field>, a2c.<field>, env.<option>."
+            "init_log_std, final_log_std, anneal_steps, ppo.<field>, a2c.<field>, env.<option>."
         ),
     ] = None,
     samples: Annotated[

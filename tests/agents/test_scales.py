@@ -64,3 +64,64 @@ def test_surgery_state_inputs_reach_the_network_at_order_one(tmp_path):
     assert policy.adapter.update_stats is False  # evaluation does not move the statistics
     policy.act(obs, {})
     assert policy.adapter.standardizer.count.item() == stats["count"].item()
+
+
+def test_surgery_exploration_narrows_geometrically_to_its_floor():
+    from sonogym.agents.networks import log_std_ceiling
+
+    cfg = task_config("surgery")
+    assert math.exp(cfg.final_log_std) == pytest.approx(0.005) and cfg.anneal_steps == 100_000
+    a, b, n = cfg.init_log_std, cfg.final_log_std, cfg.anneal_steps
+    assert log_std_ceiling(0, a, b, n) == pytest.approx(a)
+    # halfway in log space: the geometric mean of 0.05 and 0.005
+    assert math.exp(log_std_ceiling(n // 2, a, b, n)) == pytest.approx(math.sqrt(0.05 * 0.005))
+    assert log_std_ceiling(n, a, b, n) == log_std_ceiling(5 * n, a, b, n) == pytest.approx(b)
+    steps = [log_std_ceiling(t, a, b, n) for t in range(0, n + 1, 997)]
+    assert all(x > y for x, y in zip(steps, steps[1:], strict=False))
+    # the other tasks keep a free sigma
+    assert task_config("navigation").final_log_std is None
+
+
+def test_training_samples_under_the_ceiling_and_eval_restores_it(tmp_path):
+    import dataclasses
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from sonogym.agents.checkpoint import load_policy
+    from sonogym.agents.configs import resolve_train_config
+    from sonogym.agents.train import run_training
+
+    torch.set_num_threads(1)
+    base = resolve_train_config(
+        "surgery", "ppo", preset="cpu", envs=4, steps=64, checkpoint_interval=32,
+        env_kwargs=dict(patients=(0,), phantom_spacing=0.002, obs_mode="state",
+                        episode_length=16),
+    )  # fmt: skip
+    init, final = math.log(0.05), math.log(0.01)
+    cfg = dataclasses.replace(
+        base, rl=dataclasses.replace(base.rl, init_log_std=init, final_log_std=final,
+                                     anneal_steps=32),
+    )  # fmt: skip
+    run = tmp_path / "anneal"
+    run_training(cfg, run, progress=False, log=lambda _: None)
+    acc = EventAccumulator(str(run))
+    acc.Reload()
+    stds = [e.value for e in acc.Scalars("Policy / Standard deviation")]
+    # updates after steps 31 and 63 sample at the ceiling of that step (0.0105, then the
+    # floor 0.01), while the free parameter (~0.05 after two updates) would give ~0.05
+    from sonogym.agents.networks import log_std_ceiling
+
+    expected = [math.exp(log_std_ceiling(t, init, final, 32)) for t in (31, 63)]
+    assert stds == pytest.approx(expected, rel=1e-5)
+    policy, _ = load_policy(run, run / "checkpoints" / "agent_0.pt")
+    x = torch.zeros(2, policy.encoder.layout.size)
+    log_std0 = policy.compute({"observations": x}, role="policy")[1]["log_std"]
+    assert torch.allclose(log_std0, torch.full_like(log_std0, init))  # step 0: no narrowing yet
+    policy, _ = load_policy(run)
+    log_std = policy.compute({"observations": x}, role="policy")[1]["log_std"]
+    assert log_std.max() <= final + 1e-6
+    assert policy.log_std.detach().max() > final + 0.5  # the parameter itself is not clamped
+
+    bad = dataclasses.replace(cfg.rl, final_log_std=math.log(0.1))
+    with pytest.raises(ValueError, match="final_log_std .* above init_log_std"):
+        dataclasses.replace(cfg, rl=bad)

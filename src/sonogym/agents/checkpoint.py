@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from sonogym.agents.adapter import ObsLayout, SkrlEnvAdapter
-from sonogym.agents.networks import SharedActorCritic, make_models
+from sonogym.agents.networks import SharedActorCritic, log_std_ceiling, make_models
 from sonogym.envs.policy import StatelessPolicy
 from sonogym.runs import CheckpointError, load_weights
 
@@ -90,8 +90,28 @@ def load_policy(
     box = gym.spaces.Box(low, high, dtype=np.float32)
     model = make_models(cfg["task"], layout, box, device, run_net(cfg))["policy"]
     model.load_state_dict(read_checkpoint(checkpoint, device)["policy"])
+    set_log_std_ceiling(model, cfg["task_config"], checkpoint_step(checkpoint))
     model.eval()
     return model, cfg
+
+
+def checkpoint_step(path: str | Path) -> int | None:
+    """The env step per env of ``agent_<t>.pt`` (None for another name)."""
+    stem = Path(path).stem
+    digits = stem.removeprefix("agent_")
+    return int(digits) if stem.startswith("agent_") and digits.isdigit() else None
+
+
+def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int | None) -> None:
+    """Cap ``model``'s log sigma where the run anneals exploration (``final_log_std``), at its
+    value after ``step`` env steps per env (None: the end of the schedule)."""
+    final = task_config.get("final_log_std")
+    if final is None:
+        return
+    anneal = int(task_config.get("anneal_steps", 0))
+    ceiling = log_std_ceiling(anneal if step is None else step, task_config["init_log_std"],
+                              final, anneal)  # fmt: skip
+    model.log_std_max.fill_(ceiling)
 
 
 def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):

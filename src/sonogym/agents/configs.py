@@ -51,6 +51,8 @@ class TaskRLConfig:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # initial log sigma of the Gaussian policy, action units
+    final_log_std: float | None = None  # log sigma ceiling after anneal_steps (None: none)
+    anneal_steps: int = 0  # env steps per env over which the log sigma ceiling falls
     init_mean_gain: float = 1.0  # factor on the mean head's initial weights
     standardize_vectors: bool = False  # running standardisation of vector observations
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
@@ -83,6 +85,8 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         obs_scales=dict(t.obs_scales),
         reward_scale=t.reward_scale,
         init_log_std=t.init_log_std,
+        final_log_std=t.final_log_std,
+        anneal_steps=t.anneal_steps,
         init_mean_gain=t.init_mean_gain,
         standardize_vectors=t.standardize_vectors,
         cost_learning_rate=safety.cost_learning_rate,
@@ -122,6 +126,14 @@ class TrainConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 flag = {"num_envs": "envs", "timesteps": "steps"}.get(name, name)
                 raise ValueError(f"{flag} must be a positive integer, got {v!r}")
+        final, anneal = self.rl.final_log_std, self.rl.anneal_steps
+        if isinstance(anneal, bool) or not isinstance(anneal, int) or anneal < 0:
+            raise ValueError(f"anneal_steps must be an integer >= 0, got {anneal!r}")
+        if final is not None and final > self.rl.init_log_std:
+            raise ValueError(
+                f"final_log_std {final} is above init_log_std {self.rl.init_log_std}: the "
+                "ceiling only lowers sigma; pass final_log_std <= init_log_std, or None for none"
+            )
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         for name in ("checkpoint_interval", "write_interval"):

@@ -2,8 +2,9 @@
 
 One module holds one encoder ("trunk") with two heads: a Gaussian policy head (mean, plus a
 state-independent log-std parameter initialised at the task's ``init_log_std`` (task
-registry), clipped to [-20, 2] by skrl; actions are not clipped, the env clips them) and a
-scalar value head. skrl calls the same object as ``models["policy"]`` and ``models["value"]``
+registry), clipped to [-20, 2] by skrl and, where the task anneals exploration, to a ceiling the
+trainer lowers step by step (``log_std_ceiling``); actions are not clipped, the env clips them)
+and a scalar value head. skrl calls the same object as ``models["policy"]`` and ``models["value"]``
 (reference: ``separate: False``).
 
 Inputs are the adapter's flat observations; ``ObsLayout`` un-flattens them. Architectures
@@ -167,6 +168,8 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
             self.mean_head.weight.mul_(init_mean_gain)
             self.mean_head.bias.mul_(init_mean_gain)
         self.log_std = nn.Parameter(torch.full((n_act,), float(init_log_std)))
+        # not saved: the trainer sets it from the step count (``log_std_ceiling``) each step
+        self.register_buffer("log_std_max", torch.tensor(float("inf")), persistent=False)
         self.value_head = nn.Linear(self.encoder.out_features, 1)
         self._cache: tuple[torch.Tensor, bool, torch.Tensor] | None = None
         self.to(self.device)
@@ -190,10 +193,21 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         obs = inputs["observations"]
         if role == "policy":
             feats = self.features(obs)
-            return self.mean_head(feats), {"log_std": self.log_std.expand(obs.shape[0], -1)}
+            log_std = torch.minimum(self.log_std, self.log_std_max)
+            return self.mean_head(feats), {"log_std": log_std.expand(obs.shape[0], -1)}
         feats = self.features(obs)
         self._cache = None  # value is the last call on these inputs
         return self.value_head(feats), {}
+
+
+def log_std_ceiling(step: int, init_log_std: float, final_log_std: float, anneal_steps: int) -> float:
+    """The policy's log-sigma ceiling after ``step`` env steps per env: linear in log space
+    from ``init_log_std`` at step 0 to ``final_log_std`` at ``anneal_steps``, then constant
+    (so sigma falls geometrically, and a resumed run continues where it stopped)."""
+    if anneal_steps <= 0 or step >= anneal_steps:
+        return float(final_log_std)
+    frac = step / anneal_steps
+    return float(init_log_std + frac * (final_log_std - init_log_std))
 
 
 def make_models(

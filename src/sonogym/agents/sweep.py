@@ -13,8 +13,8 @@ At the end ``out/sweep.md`` / ``sweep.csv`` hold one row per trial (its seed and
 status, final metrics); ``sonogym sweep`` then draws the mean ± 1 sigma learning curves over
 seeds into ``out/plots`` (``sonogym plot --runs out/runs``).
 
-Grid keys: ``num_envs``, ``net``, ``obs_downsample``, ``reward_scale``, ``init_log_std`` (the
-task config), ``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an
+Grid keys: ``num_envs``, ``net``, ``obs_downsample``, ``reward_scale``, ``init_log_std``,
+``final_log_std``, ``anneal_steps`` (the task config), ``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an
 env option). Ray runs locally unless ``address`` names a cluster (``ray://host:10001``).
 """
 
@@ -35,7 +35,10 @@ from sonogym.runs import atomic_write_json, atomic_write_text, prepare_output, r
 
 RAY_HINT = "sonogym sweep needs Ray Tune: pip install 'sonogym[ray]' (or pip install 'ray[tune]')"
 SWEEP_FILE = "sweep.json"
-TASK_KEYS = ("num_envs", "net", "obs_downsample", "reward_scale", "init_log_std")
+TASK_KEYS = (
+    "num_envs", "net", "obs_downsample", "reward_scale", "init_log_std", "final_log_std",
+    "anneal_steps",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)

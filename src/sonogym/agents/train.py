@@ -38,7 +38,11 @@ from typing import Any
 import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
-from sonogym.agents.checkpoint import latest_readable_checkpoint, read_checkpoint
+from sonogym.agents.checkpoint import (
+    latest_readable_checkpoint,
+    read_checkpoint,
+    set_log_std_ceiling,
+)
 from sonogym.agents.configs import (
     TaskRLConfig,
     TrainConfig,
@@ -230,8 +234,10 @@ def run_training(
     bar = tqdm(total=steps, initial=start, disable=not progress, unit="step", desc=f"{task}/{algo}")
     done = start
     recent = _EpisodeMeans()
+    task_cfg = to_jsonable(cfg.rl)
     try:
         for t in range(start, steps):
+            set_log_std_ceiling(models["policy"], task_cfg, t)
             agent.pre_interaction(timestep=t, timesteps=steps)
             with torch.no_grad():
                 actions, _ = agent.act(obs, None, timestep=t, timesteps=steps)

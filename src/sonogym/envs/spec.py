@@ -174,7 +174,10 @@ class TrainingDefaults:
     ``trunks`` maps a network size ("paper", "small") to the conv layers of the task's image
     trunk; ``vector_splits`` names vector observation entries the encoder splits into named
     parts with one MLP each (surgery's pose: ("pos", 3), ("quat", 4)); ``init_log_std`` is the
-    Gaussian policy's initial log standard deviation in action units (exploration)."""
+    Gaussian policy's initial log standard deviation in action units (exploration);
+    ``final_log_std`` (None: off) is a ceiling on it that falls linearly in log space from
+    ``init_log_std`` to this value over the first ``anneal_steps`` env steps per env, then stays
+    (exploration that narrows as the policy sharpens; PPO may still shrink sigma faster)."""
 
     algos: tuple[str, ...]
     ppo: PPOParams  # the paper's table
@@ -186,6 +189,8 @@ class TrainingDefaults:
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # log of sigma in action units
+    final_log_std: float | None = None  # log sigma ceiling after anneal_steps (None: no ceiling)
+    anneal_steps: int = 0  # env steps per env over which the ceiling falls
     init_mean_gain: float = 1.0  # factor on the mean head's initial weights (0.01: acts ~0)
     ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
     standardize_vectors: bool = False  # running standardisation of vector observations

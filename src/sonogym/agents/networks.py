@@ -200,7 +200,9 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         return self.value_head(feats), {}
 
 
-def log_std_ceiling(step: int, init_log_std: float, final_log_std: float, anneal_steps: int) -> float:
+def log_std_ceiling(
+    step: int, init_log_std: float, final_log_std: float, anneal_steps: int
+) -> float:
     """The policy's log-sigma ceiling after ``step`` env steps per env: linear in log space
     from ``init_log_std`` at step 0 to ``final_log_std`` at ``anneal_steps``, then constant
     (so sigma falls geometrically, and a resumed run continues where it stopped)."""

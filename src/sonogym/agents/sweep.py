@@ -14,8 +14,9 @@ status, final metrics); ``sonogym sweep`` then draws the mean ± 1 sigma learnin
 seeds into ``out/plots`` (``sonogym plot --runs out/runs``).
 
 Grid keys: ``num_envs``, ``net``, ``obs_downsample``, ``reward_scale``, ``init_log_std``,
-``final_log_std``, ``anneal_steps`` (the task config), ``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an
-env option). Ray runs locally unless ``address`` names a cluster (``ray://host:10001``).
+``final_log_std``, ``anneal_steps`` (the task config), ``ppo.<field>`` / ``a2c.<field>`` (the
+algorithm's table), ``env.<option>`` (an env option). Ray runs locally unless ``address``
+names a cluster (``ray://host:10001``).
 """
 
 from __future__ import annotations

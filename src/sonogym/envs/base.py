@@ -33,6 +33,8 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from sonogym.checks import expect_all
+
 
 def make_config(cls: type, kwargs: dict[str, Any]):
     """Build a frozen config dataclass from keyword arguments, naming unknown keys."""
@@ -137,9 +139,13 @@ class TorchVectorEnv(VectorEnv):
             raise ValueError(
                 f"actions must have shape {want} (num_envs, action_dim), got {tuple(a.shape)}"
             )
-        if not torch.isfinite(a).all():
-            bad = torch.nonzero(~torch.isfinite(a).all(-1)).flatten().tolist()
-            raise ValueError(f"actions contain NaN or inf (envs {bad[:10]})")
+        expect_all(
+            torch.isfinite(a),
+            lambda: (
+                "actions contain NaN or inf (envs "
+                f"{torch.nonzero(~torch.isfinite(a).all(-1)).flatten().tolist()[:10]})"
+            ),
+        )
         return a
 
     def current_info(self) -> dict[str, Any]:

@@ -310,7 +310,9 @@ class ReconstructionEnv(TorchVectorEnv):
         self._set_spaces(obs_space, spaces.Box(-bound, bound, (4,), np.float32))
         # Per-env episode state.
         p = size + 2  # stored with a one-voxel empty border (cheap out-of-cube lookups)
-        self._vpad = torch.zeros(n, p, p, p, dtype=torch.bool, device=dev)
+        # one slot past the cubes: where points outside every cube are written (no masking)
+        self._vslots = torch.zeros(n * p**3 + 1, dtype=torch.bool, device=dev)
+        self._vpad = self._vslots[:-1].view(n, p, p, p)
         self.volume = self._vpad[:, 1:-1, 1:-1, 1:-1]  # (N, S, S, S) view: V
         self.covered = torch.zeros(n, dtype=torch.long, device=dev)  # |M|
         self.translation_mm = torch.zeros(n, dtype=torch.float64, device=dev)  # sum |dx|+|dy|
@@ -414,14 +416,20 @@ class ReconstructionEnv(TorchVectorEnv):
         env = torch.arange(self.num_envs, device=self.device)[:, None].expand_as(ok)
         p = size + 2
         idx = idx + 1  # into the padded storage
-        flat = ((env * p + idx[..., 0]) * p + idx[..., 1]) * p + idx[..., 2]
-        flat, env = flat[ok], env[ok]
         vol = p**3
-        # New reference voxels: on R, not yet in V (counted once per voxel).
-        on_r = self._rpad.view(-1)[pid[env] * vol + (flat - env * vol)]
-        fresh = flat[on_r & ~self._vpad.view(-1)[flat]]
-        self._vpad.view(-1)[flat] = True
-        new = torch.bincount(torch.unique(fresh) // vol, minlength=self.num_envs)
+        spare = self.num_envs * vol  # the slot past the cubes
+        local = ((idx[..., 0] * p + idx[..., 1]) * p + idx[..., 2]).where(ok, 0)
+        flat = torch.where(ok, env * vol + local, spare)
+        # New reference voxels: on R, not yet in V, counted once per voxel. Fixed-size ops
+        # only (no boolean masks, no unique): no host read, so no wait on a GPU.
+        on_r = self._rpad.view(-1)[pid[:, None] * vol + local] & ok
+        fresh = on_r & ~self._vslots[flat]
+        self._vslots[flat] = True
+        key, _ = torch.sort(torch.where(fresh, flat, spare).view(-1))
+        first = torch.ones_like(key, dtype=torch.bool)
+        first[1:] = key[1:] != key[:-1]
+        owner = (key // vol).clamp_max(self.num_envs - 1)
+        new = torch.zeros_like(self.covered).index_add_(0, owner, (first & (key != spare)).long())
         self.covered += new
         return new
 

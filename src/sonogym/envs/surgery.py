@@ -201,10 +201,8 @@ def surgery_regions(
     (sqrt(p_x^2 + p_y^2) <= d/2 and -l < p_z <= 0) or UNSAFE."""
     free = p[:, 2] <= -skin_distance
     drill = ~free & (p[:, :2].norm(dim=-1) <= half_width) & (p[:, 2] <= 0)
-    region = torch.full(p.shape[:1], UNSAFE, dtype=torch.long, device=p.device)
-    region[drill] = DRILL
-    region[free] = FREE
-    return region
+    unsafe = torch.full_like(free, UNSAFE, dtype=torch.long)
+    return torch.where(free, FREE, torch.where(drill, DRILL, unsafe))
 
 
 def surgery_potential(

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import pytorch_kinematics as pk
 import torch
 
+from sonogym.checks import expect_all
 from sonogym.geometry import axis_angle_from_matrix, invert_pose
 from sonogym.robots.description import arm_model, assemble_urdf
 from sonogym.robots.tools import PROBE_TOOL, ToolConfig
@@ -122,8 +123,7 @@ class IKResult:
 
 
 def _check_finite(name: str, t: torch.Tensor) -> None:
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} contains NaN or inf; pass finite values")
+    expect_all(torch.isfinite(t), f"{name} contains NaN or inf; pass finite values")
 
 
 class Arm:
@@ -284,11 +284,11 @@ class Arm:
         q = q.to(self.device, self.dtype)
         if within_limits:
             tol = 1e-4
-            if bool(((q < self.q_min - tol) | (q > self.q_max + tol)).any()):
-                raise ValueError(
-                    "joint positions outside the joint limits; start from Arm.default_joints, "
-                    "Arm.random_joints or Arm.clamp_joints"
-                )
+            expect_all(
+                (q >= self.q_min - tol) & (q <= self.q_max + tol),
+                "joint positions outside the joint limits; start from Arm.default_joints, "
+                "Arm.random_joints or Arm.clamp_joints",
+            )
             q = self.clamp_joints(q)
         return q
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from sonogym.anatomy.surface import SkinSurface
+from sonogym.checks import expect_all
 from sonogym.robots.arm import Arm, IKResult
 
 
@@ -78,8 +79,7 @@ class SurfaceController:
                     "surface command components x, z, yaw, tilt must be 1-D tensors of equal "
                     f"length N; got {name} with shape {tuple(v.shape)} (x: {tuple(x.shape)})"
                 )
-            if not bool(torch.isfinite(v).all()):
-                raise ValueError(f"command component {name} contains NaN or inf")
+            expect_all(torch.isfinite(v), f"command component {name} contains NaN or inf")
         dev, dt = self.arm.device, self.arm.dtype
         x, z, yaw = (v.to(dev, dt) for v in (x, z, yaw))
         tilt = None if tilt is None else tilt.to(dev, dt)

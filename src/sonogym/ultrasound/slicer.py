@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from sonogym.anatomy.patient import Patient
+from sonogym.checks import expect_all
 from sonogym.ultrasound._workspace import Workspace
 from sonogym.ultrasound.probe import ProbeGeometry
 
@@ -144,11 +145,12 @@ def check_poses(pos: torch.Tensor, rot: torch.Tensor) -> None:
             f"probe rotations must have shape (N, 3, 3) = ({pos.shape[0]}, 3, 3) to match the "
             f"positions, got {tuple(rot.shape)}"
         )
-    if not torch.isfinite(pos).all() or not torch.isfinite(rot).all():
+
+    def detail() -> str:
         bad = (~torch.isfinite(pos).all(-1)) | (~torch.isfinite(rot).flatten(1).all(-1))
-        raise ValueError(
-            f"probe poses contain NaN/inf (envs {bad.nonzero().flatten().tolist()[:10]})"
-        )
+        return f"probe poses contain NaN/inf (envs {bad.nonzero().flatten().tolist()[:10]})"
+
+    expect_all(torch.isfinite(pos).all(-1) & torch.isfinite(rot).flatten(1).all(-1), detail)
 
 
 def upsample_linear(src: torch.Tensor, dim: int, k: int, out: torch.Tensor) -> torch.Tensor:
@@ -322,10 +324,10 @@ class Slicer:
             pidx = torch.as_tensor(patient_index, device=self.device).long().reshape(-1)
             if pidx.shape[0] != n:
                 raise ValueError(f"patient_index must have shape ({n},), got {tuple(pidx.shape)}")
-            if n and (int(pidx.min()) < 0 or int(pidx.max()) >= self.num_patients):
-                raise ValueError(
-                    f"patient_index out of range: the slicer holds {self.num_patients} patients"
-                )
+            expect_all(
+                (pidx >= 0) & (pidx < self.num_patients),
+                f"patient_index out of range: the slicer holds {self.num_patients} patients",
+            )
         pr = self.probe
         shape = (n, pr.elevation_px, pr.depth_px, pr.width_px)
         if out is not None and out.ct.shape == shape and out.ct.device == self.device:

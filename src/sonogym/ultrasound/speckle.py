@@ -30,6 +30,8 @@ import math
 
 import torch
 
+from sonogym.checks import expect_all
+
 FRAC_BITS = 8
 FIELD_BITS = 21
 _INT_BITS = FIELD_BITS - FRAC_BITS
@@ -114,11 +116,11 @@ def packed_coordinates(
     bfx = torch.floor(b * scale).long()
     lo = afx.amin()
     hi = afx.amax(1).unsqueeze(1) + bfx.amax(1).unsqueeze(1)
-    if int(lo) < 0 or int(hi.max()) >= _FIELD_MAX:
-        raise ValueError(
-            "speckle: pixel positions lie beyond the noise lattice's range "
-            f"(+-{_OFFSET * cell:.2f} m around the patient origin)"
-        )
+    expect_all(
+        (lo >= 0) & (hi.max() < _FIELD_MAX),
+        "speckle: pixel positions lie beyond the noise lattice's range "
+        f"(+-{_OFFSET * cell:.2f} m around the patient origin)",
+    )
     shifts = (2 * FIELD_BITS, FIELD_BITS, 0)
     rows = sum(afx[..., k] << s for k, s in enumerate(shifts))
     cols = sum(bfx[..., k] << s for k, s in enumerate(shifts))

@@ -35,6 +35,7 @@ import torch
 
 from sonogym.anatomy.labels import BONE_IDS
 from sonogym.anatomy.patient import Patient
+from sonogym.checks import expect_all
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.slicer import check_poses
 
@@ -134,8 +135,10 @@ class BoneSurfaceSensor:
         pid = torch.as_tensor(patient_index, device=dev).long().reshape(-1)
         if pid.shape[0] != n:
             raise ValueError(f"patient_index must have shape ({n},), got {tuple(pid.shape)}")
-        if n and (int(pid.min()) < 0 or int(pid.max()) >= len(self._offsets)):
-            raise ValueError(f"patient_index out of range: the sensor holds {len(self._offsets)}")
+        expect_all(
+            (pid >= 0) & (pid < len(self._offsets)),
+            f"patient_index out of range: the sensor holds {len(self._offsets)}",
+        )
         pos = pos.to(dev, torch.float64)
         rot = rot.to(dev, torch.float64)
         xu, zu = rot[..., 0], rot[..., 2]

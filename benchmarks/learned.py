@@ -2,7 +2,8 @@
 
 Prints two tables.
 
-1. ``LearnedSimulator`` (shipped net 0) on 1, 10 and 100 env images of 200 x 150 (the 2-D env
+1. ``LearnedSimulator`` (shipped net 0; float32 and ``precision="bfloat16"``, "lrn-bf16") on
+   1, 10 and 100 env images of 200 x 150 (the 2-D env
    image; the net runs on its 112 x 80 input grid and the output is resized back), CT slices
    of the seed-0 phantom at 1 mm: slice and simulate time per batch (median of --repeats after
    a warm-up), on CPU and on CUDA when present. Budget (issue 9): 100 images <= 30 ms on one
@@ -51,13 +52,14 @@ def simulation_table(args) -> None:
         sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
         slicer = Slicer([patient], ProbeGeometry.linear_2d(), device=dev)
         learned = LearnedSimulator(shipped_weights(0), device=dev)
+        bf16 = LearnedSimulator(shipped_weights(0), device=dev, precision="bfloat16")
         physical = ModelBasedSimulator("physical", device=dev)
         for n in args.envs:
             pos, rot = surface_poses(patient, n)
             pos, rot = pos.float().to(dev), rot.float().to(dev)
             slices = slicer(pos, rot)
             t_slice, _ = median_s(lambda sl=slicer, p=pos, r=rot: sl(p, r), args.repeats, sync)
-            for name, sim in (("learned", learned), ("physical", physical)):
+            for name, sim in (("learned", learned), ("lrn-bf16", bf16), ("physical", physical)):
                 t, best = median_s(lambda sim=sim, s=slices: sim.simulate(s), args.repeats, sync)
                 print(f"{dev:7} {name:9} {n:6d} {t_slice * 1e3:9.2f} {t * 1e3:12.2f} "
                       f"{best * 1e3:8.2f} {n / t:9.0f}")  # fmt: skip

@@ -47,6 +47,15 @@ def test_single_net_set_uses_only_that_net():
     assert env.scene.nets.index.tolist() == [0, 0, 0]
 
 
+def test_learned_precision_reaches_the_simulator_and_is_checked():
+    env = NavigationEnv(2, simulator="learned", learned_nets=(0,), learned_precision="bfloat16",
+                        **FAST)  # fmt: skip
+    env.reset(seed=0)
+    assert env.scene.simulator.precision == "bfloat16"
+    with pytest.raises(ValueError, match="learned_precision must be one of"):
+        NavigationEnv(1, simulator="learned", learned_precision="half", **FAST)
+
+
 @pytest.mark.parametrize("task", ["Navigation", "Surgery"])
 def test_learned_images_survive_autoreset(task):
     # Regression: images made under torch.inference_mode could not be updated in place when

@@ -56,13 +56,23 @@ def matching_sample(patients, device, per_patient: int = 32, seed: int = 0) -> t
     return torch.cat(cts)
 
 
-def build_simulator(name: str, patients, device, learned_nets=DEFAULT_LEARNED_NETS, model=None):
-    """The simulator of an env scene. ``model`` overrides the model-based preset's model."""
+def build_simulator(
+    name: str,
+    patients,
+    device,
+    learned_nets=DEFAULT_LEARNED_NETS,
+    model=None,
+    learned_precision: str = "float32",
+):
+    """The simulator of an env scene. ``model`` overrides the model-based preset's model;
+    ``learned_precision`` is the learned nets' working precision ("float32", "bfloat16")."""
     if name == "learned":
         from sonogym.ultrasound.learned.shipped import resolve_nets
         from sonogym.ultrasound.learned.simulator import LearnedSimulator
 
-        sim = LearnedSimulator(resolve_nets(learned_nets), device=device)
+        sim = LearnedSimulator(
+            resolve_nets(learned_nets), device=device, precision=learned_precision
+        )
         sim.fit_source(matching_sample(patients, device))
         return sim
     from sonogym.ultrasound import ModelBasedSimulator

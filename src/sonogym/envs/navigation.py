@@ -75,6 +75,7 @@ class NavigationConfig:
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
     simulator: SimulatorName = "physical"
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
+    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)

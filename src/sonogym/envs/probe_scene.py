@@ -38,6 +38,7 @@ class ProbeScene(PatientScene):
         render: bool = True,
         probe: ProbeGeometry | None = None,
         learned_nets=(0, 1, 2, 3, 4),
+        learned_precision: str = "float32",
     ) -> None:
         super().__init__(
             patients,
@@ -48,6 +49,7 @@ class ProbeScene(PatientScene):
             target_vertebra,
             device,
             probe or ProbeGeometry.linear_2d(),
+            learned_precision=learned_precision,
         )
         self.robot = robot
         self.reachable = torch.ones(num_envs, dtype=torch.bool, device=device)
@@ -67,6 +69,7 @@ class ProbeScene(PatientScene):
             spacing=cfg.phantom_spacing,
             simulator=cfg.simulator,
             learned_nets=cfg.learned_nets,
+            learned_precision=cfg.learned_precision,
             robot=cfg.robot,
             target_vertebra=cfg.target_vertebra,
             device=device,

@@ -122,6 +122,7 @@ class ReconstructionConfig:
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
     simulator: SimulatorName = "physical"  # of env.scene.observe("us") (viewing only; not sensed)
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
+    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     obs_mode: ObsMode = "reconstruction"  # Dict observation, or the privileged state
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)

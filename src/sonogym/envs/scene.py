@@ -40,6 +40,7 @@ class PatientScene:
         probe: the imaging geometry.
         gel_depth: m, coupling gel under the probe face, overriding the model-based preset's
             (None keeps the preset's).
+        learned_precision: working precision of the learned nets ("float32", "bfloat16").
     """
 
     def __init__(
@@ -53,8 +54,16 @@ class PatientScene:
         device: torch.device,
         probe: ProbeGeometry,
         gel_depth: float | None = None,
+        learned_precision: str = "float32",
     ) -> None:
         check_simulator(simulator, learned_nets)
+        from sonogym.ultrasound.learned.simulator import PRECISIONS
+
+        if learned_precision not in PRECISIONS:
+            raise ValueError(
+                f"learned_precision must be one of {PRECISIONS}, got {learned_precision!r}"
+            )
+        self.learned_precision = learned_precision
         self.device = device
         self.num_envs = num_envs
         self.simulator_name = simulator
@@ -83,8 +92,9 @@ class PatientScene:
         if self.simulator_name != "learned" and self.gel_depth is not None:
             model = replace(make_model(self.simulator_name), gel_depth=float(self.gel_depth))
         return build_simulator(
-            self.simulator_name, self.patients, self.device, self.learned_nets, model
-        )
+            self.simulator_name, self.patients, self.device, self.learned_nets, model,
+            self.learned_precision,
+        )  # fmt: skip
 
     def build_imaging(self) -> None:
         """Build the slicer and the simulator now (else on the first ``observe``)."""

@@ -114,6 +114,7 @@ class SurgeryScene(PatientScene):
         gel_depth: float | None = None,
         render: bool = True,
         learned_nets=DEFAULT_LEARNED_NETS,
+        learned_precision: str = "float32",
     ) -> None:
         from sonogym.robots import SURGERY_DRILL_BASE, SURGERY_PROBE_BASE
 
@@ -129,6 +130,7 @@ class SurgeryScene(PatientScene):
             device,
             ProbeGeometry.volume_3d(),
             gel_depth,
+            learned_precision,
         )
         self.side = side
         self.skin_distance = float(skin_distance)

@@ -43,6 +43,7 @@ from sonogym.ultrasound.learned.histogram import window_ct
 from sonogym.ultrasound.slicer import Slices
 
 HISTOGRAM_MODES = ("per_image", "first_batch", "none")
+PRECISIONS = ("float32", "bfloat16")
 
 
 class LearnedSimulator:
@@ -59,6 +60,10 @@ class LearnedSimulator:
         output_scale: factor on the generator's output.
         batch_size: images per forward pass (None: 16 on CPU, where small chunks stay in
             cache and run ~20 % faster than one big batch, 256 elsewhere).
+        precision: "float32" (default) or "bfloat16": the generator's convolutions under
+            autocast in bfloat16 (about 3x faster on CPUs with AVX-512 BF16; images differ from
+            float32 by ~1e-3 on average, see docs/ultrasound.md). Inputs, normalisation and
+            outputs stay float32.
     """
 
     def __init__(
@@ -71,7 +76,11 @@ class LearnedSimulator:
         degrade: float = 1.0,
         output_scale: float = 1.0,
         batch_size: int | None = None,
+        precision: str = "float32",
     ) -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        self.precision = precision
         paths = [weights] if isinstance(weights, (str, Path)) else list(weights)
         if not paths:
             raise ValueError("LearnedSimulator needs at least one generator checkpoint")
@@ -170,7 +179,10 @@ class LearnedSimulator:
                 if i not in self._frozen_luts:
                     self._frozen_luts[i] = hist.lut(xb)
                 xb = hist.apply(xb, self._frozen_luts[i])
-            y = gen(xb)
+            with torch.autocast(
+                self.device.type, torch.bfloat16, enabled=self.precision == "bfloat16"
+            ):
+                y = gen(xb).float()
             if tuple(y.shape[-2:]) != (h, w):
                 y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=False)
             outs.append(y)

@@ -2,7 +2,7 @@
 
 from sonogym.anatomy.labels import LABEL_IDS, LABELS, label_id
 from sonogym.anatomy.landmarks import LandmarkError, Landmarks, PedicleTrajectory, VertebraFrame
-from sonogym.anatomy.patient import Patient, PatientError
+from sonogym.anatomy.patient import Patient, PatientError, PatientModel
 from sonogym.anatomy.phantom import PhantomParams, cache_dir, load_phantom, make_phantom
 from sonogym.anatomy.surface import SkinSurface
 from sonogym.anatomy.totalseg import load_totalsegmentator, save_totalsegmentator
@@ -13,6 +13,7 @@ __all__ = [
     "LandmarkError",
     "Landmarks",
     "Patient",
+    "PatientModel",
     "PatientError",
     "PedicleTrajectory",
     "PhantomParams",

@@ -1,16 +1,20 @@
 """The patient model: a ``Volume`` (CT + labels + frame) with the models derived from it, the
-skin surface over the back and the vertebra landmarks, each computed once on first use."""
+skin surface over the back and the vertebra landmarks, each computed once on first use; and
+``PatientModel``, what a built env keeps of a patient once its imaging holds its own compact
+copy of the volumes."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
+
+import numpy as np
 
 from sonogym.anatomy.landmarks import Landmarks
 from sonogym.anatomy.surface import SkinSurface
 from sonogym.anatomy.volume import PatientError, Volume
 
-__all__ = ["Patient", "PatientError"]
+__all__ = ["Patient", "PatientError", "PatientModel"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,3 +30,49 @@ class Patient(Volume):
     def landmarks(self) -> Landmarks:
         """Vertebra frames and planned pedicle trajectories (computed once)."""
         return Landmarks.from_patient(self)
+
+    def model(self) -> PatientModel:
+        """This patient without its CT and label volumes (skin and landmarks computed now)."""
+        return PatientModel(
+            self.name, self.affine.copy(), self.shape, dict(self.meta), self.skin, self.landmarks
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PatientModel:
+    """A patient's grid, skin surface and landmarks, without the volumes: what a built env
+    keeps (``PatientScene.release_volumes``), some 1.5 MB instead of the CT's and labels'
+    5 bytes per voxel (117 MB for a phantom at 1 mm). ``ct`` and ``labels`` raise an error
+    that says where to get them."""
+
+    name: str
+    affine: np.ndarray
+    shape: tuple[int, int, int]
+    meta: dict = field(default_factory=dict)
+    skin: SkinSurface | None = None
+    landmarks: Landmarks | None = None
+
+    @property
+    def spacing(self) -> np.ndarray:
+        """Voxel size (3,) in metres."""
+        return np.diag(self.affine)[:3].copy()
+
+    @property
+    def origin(self) -> np.ndarray:
+        """Patient-frame position (3,) of voxel (0, 0, 0), metres."""
+        return self.affine[:3, 3].copy()
+
+    @property
+    def ct(self):
+        raise AttributeError(self._released("ct"))
+
+    @property
+    def labels(self):
+        raise AttributeError(self._released("labels"))
+
+    def _released(self, what: str) -> str:
+        return (
+            f"{self.name}: an env keeps no full {what} volume once its slicer is built (memory); "
+            "load the patient with sonogym.envs.patients.resolve_patients (or "
+            "sonogym.anatomy.load_phantom / load_totalsegmentator) for its volumes"
+        )

@@ -170,6 +170,7 @@ class NavigationEnv(TorchVectorEnv):
         self._set_spaces(obs_space, spaces.Box(-bound, bound, (3,), np.float32))
         self._state = torch.zeros(n, 6, device=self.device)
         self._prev_state = torch.zeros(n, 6, device=self.device)
+        self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:

@@ -22,7 +22,12 @@ PatientSpec = int | str | Path
 TARGET = "L4"
 
 
-@lru_cache(maxsize=16)
+#: Patients kept loaded in-process (full volumes: ~120 MB each at 1 mm), for envs built one
+#: after another on the same patients (evaluation, tests); built envs keep only what they need.
+CACHED_PATIENTS = 4
+
+
+@lru_cache(maxsize=CACHED_PATIENTS)
 def _load(spec: int | str, spacing: float) -> Patient:
     if isinstance(spec, int):
         return load_phantom(spec, PhantomParams(spacing=spacing))

@@ -328,6 +328,7 @@ class ReconstructionEnv(TorchVectorEnv):
         g = torch.arange(size, dtype=torch.float32, device=dev)
         self._grid_xy = g - (size - 1) / 2
         self._grid_z = g + 0.5
+        self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:

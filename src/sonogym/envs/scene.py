@@ -16,7 +16,7 @@ from functools import cached_property
 import numpy as np
 import torch
 
-from sonogym.anatomy import SkinSurface
+from sonogym.anatomy import Patient, SkinSurface
 from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator, simulate_us
 from sonogym.envs.patients import resolve_patients
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
@@ -99,6 +99,14 @@ class PatientScene:
     def build_imaging(self) -> None:
         """Build the slicer and the simulator now (else on the first ``observe``)."""
         _ = self.slicer, self.simulator
+
+    def release_volumes(self) -> None:
+        """Build the imaging, then keep only each patient's ``PatientModel`` (grid, skin,
+        landmarks): the slicer holds its own compact copy of the volumes, so the full float32
+        CT and labels (5 bytes per voxel) need not stay. Envs call this at the end of their
+        construction, after everything that reads the volumes."""
+        self.build_imaging()
+        self.patients = [p.model() if isinstance(p, Patient) else p for p in self.patients]
 
     def draw_nets(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
         """Draw the learned net of each env in ``env_ids`` from uniforms ``u`` (see NetChoice)."""

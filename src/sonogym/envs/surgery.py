@@ -382,6 +382,7 @@ class SurgeryEnv(TorchVectorEnv):
         self._safe_steps = torch.zeros(n, **f32)
         self._tracking_error = torch.zeros(n, **f32)
         self.start_redraws = torch.zeros(n, dtype=torch.long, device=dev)
+        self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:

@@ -1,0 +1,57 @@
+"""A built env keeps no full patient volume: the slicer's compact copy (float16 CT, uint8
+labels) is what images come from; the scene keeps each patient's grid, skin and landmarks."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from sonogym.anatomy import Patient, PatientModel
+from sonogym.envs.patients import resolve_patients
+from sonogym.envs.registry import make_vec
+
+
+def _tensors(root) -> list[torch.Tensor]:
+    """Every tensor reachable from ``root`` through sonogym objects, dicts, lists, tuples."""
+    seen, out, stack = set(), [], [root]
+    while stack:
+        o = stack.pop()
+        if id(o) in seen:
+            continue
+        seen.add(id(o))
+        if isinstance(o, torch.Tensor):
+            out.append(o)
+        elif isinstance(o, dict):
+            stack.extend(o.values())
+        elif isinstance(o, list | tuple):
+            stack.extend(o)
+        elif type(o).__module__.startswith("sonogym") and hasattr(o, "__dict__"):
+            stack.extend(vars(o).values())
+    return out
+
+
+@pytest.mark.parametrize("task", ["navigation", "reconstruction", "surgery"])
+def test_built_env_keeps_no_full_patient_volume(task):
+    torch.set_num_threads(1)
+    env = make_vec(task, 2, phantom_spacing=0.002)
+    (full,) = resolve_patients(0, 0.002)
+    assert isinstance(full, Patient)
+    voxels = math.prod(full.shape)
+    pats = env.scene.patients
+    assert all(isinstance(p, PatientModel) for p in pats)
+    assert pats[0].shape == full.shape and pats[0].name == full.name
+    assert pats[0].landmarks.vertebra("L4").centre == pytest.approx(
+        full.landmarks.vertebra("L4").centre
+    )
+    with pytest.raises(AttributeError, match="resolve_patients"):
+        _ = pats[0].ct
+    held = _tensors(env)
+    # neither the patient's own CT / labels nor any same-sized float32 or uint8 volume
+    assert not any(t.untyped_storage().data_ptr() == full.ct.data_ptr() for t in held)
+    assert not any(t.untyped_storage().data_ptr() == full.labels.data_ptr() for t in held)
+    assert not any(t.numel() == voxels and t.dtype == torch.float32 for t in held)
+    # ... and images still come: the slicer holds the compact copy
+    obs, _ = env.reset(seed=0)
+    env.step(torch.zeros(env.action_space.shape))

@@ -14,15 +14,23 @@ $S train --task navigation --algo ppo $T --steps 4512 --obs-downsample 4 --proto
     --out runs/nav-ppo-small-lb-s0
 # Reconstruction, submodular PPO.
 $S train --task reconstruction --algo ppo $T --steps 4000 --out runs/recon-ppo-small-s0
-# Surgery from the privileged state (issue 14's first step): cpu preset, 3 seeds, ~25 min each.
+# Surgery from the privileged state (issue 14's first step): cpu preset (sigma ceiling
+# 0.05 -> 0.005 over 100k steps), 3 seeds, ~22-29 min each.
 for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 120000 \
-      --out runs/surg-state-s$s
+      --out runs/surg-state-anneal-s$s
 done
+# Surgery from the paper's observation (US volume pooled 2x to 5 x 25 x 18, + tracked pose),
+# PPO trained for the safety filter (the filter acts at test time only), ~90 min.
+$S train --task surgery --algo ppo-sf --obs-downsample 2 --steps 130000 --seed 0 \
+    --out runs/surg-img-sf-anneal-s0
 # Imitation learning: expert datasets, ACT and Diffusion Policy (navigation at 100 x 75).
 $S record --task navigation --preset mb --episodes 200 --envs 16 --out runs/ds-nav-mb
 $S il-train --policy act --data runs/ds-nav-mb --image-size 100x75 --steps 75000 --threads 1 \
     --out runs/il-nav-act
+# ... continued to 90 min of training in all (constant learning rate, so a resume is exact).
+$S il-train --policy act --data runs/ds-nav-mb --out runs/il-nav-act --resume --steps 128000 \
+    --threads 1
 $S il-train --policy diffusion --data runs/ds-nav-mb --image-size 100x75 --steps 32000 \
     --threads 1 --out runs/il-nav-dp
 $S record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb
@@ -39,7 +47,8 @@ $S eval --run runs/nav-ppo-small-s0 --protocol odt-patient
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol idt
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim
 $S eval --run runs/recon-ppo-small-s0 --protocol idt
-for r in runs/surg-state-s0 runs/surg-state-s1 runs/surg-state-s2 runs/il-surg-act; do
+for r in runs/surg-state-anneal-s0 runs/surg-state-anneal-s1 runs/surg-state-anneal-s2 \
+    runs/surg-img-sf-anneal-s0 runs/il-surg-act; do
   $S eval --run $r --protocol idt --envs 50
   $S eval --run $r --protocol odt-patient --envs 50
 done
@@ -50,8 +59,8 @@ $S eval --run runs/il-nav-dp --trials 100 --envs 50
 $S report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 \
     --out docs/results/navigation
 $S report --task reconstruction --runs runs/recon-ppo-small-s0 --out docs/results/reconstruction
-$S report --task surgery --runs runs/surg-state-s0 runs/surg-state-s1 runs/surg-state-s2 \
-    runs/il-surg-act --out docs/results/surgery
+$S report --task surgery --runs runs/surg-state-anneal-s0 runs/surg-state-anneal-s1 \
+    runs/surg-state-anneal-s2 runs/surg-img-sf-anneal-s0 runs/il-surg-act --out docs/results/surgery
 $S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/results/navigation-sweep \
     --metric "Episode / return" --metric "Episode / position_error_mm"
 $S plot --runs runs/nav-ppo-small-s0 --out docs/results/navigation-curves \

@@ -12,7 +12,7 @@ import numpy as np
 
 from sonogym.anatomy.landmarks import Landmarks
 from sonogym.anatomy.surface import SkinSurface
-from sonogym.anatomy.volume import PatientError, Volume
+from sonogym.anatomy.volume import AxisAlignedGrid, PatientError, Volume
 
 __all__ = ["Patient", "PatientError", "PatientModel"]
 
@@ -39,7 +39,7 @@ class Patient(Volume):
 
 
 @dataclass(frozen=True, eq=False)
-class PatientModel:
+class PatientModel(AxisAlignedGrid):
     """A patient's grid, skin surface and landmarks, without the volumes: what a built env
     keeps (``PatientScene.release_volumes``), some 1.5 MB instead of the CT's and labels'
     5 bytes per voxel (117 MB for a phantom at 1 mm). ``ct`` and ``labels`` raise an error
@@ -51,16 +51,6 @@ class PatientModel:
     meta: dict = field(default_factory=dict)
     skin: SkinSurface | None = None
     landmarks: Landmarks | None = None
-
-    @property
-    def spacing(self) -> np.ndarray:
-        """Voxel size (3,) in metres."""
-        return np.diag(self.affine)[:3].copy()
-
-    @property
-    def origin(self) -> np.ndarray:
-        """Patient-frame position (3,) of voxel (0, 0, 0), metres."""
-        return self.affine[:3, 3].copy()
 
     @property
     def ct(self):

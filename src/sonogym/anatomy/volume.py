@@ -20,8 +20,24 @@ class PatientError(ValueError):
     """A patient's data is malformed; the message says what and how to fix it."""
 
 
+class AxisAlignedGrid:
+    """Spacing and origin of a grid whose ``affine`` (4, 4) is diagonal (canonical RAS)."""
+
+    affine: np.ndarray
+
+    @property
+    def spacing(self) -> np.ndarray:
+        """Voxel size (3,) in metres."""
+        return np.diag(self.affine)[:3].copy()
+
+    @property
+    def origin(self) -> np.ndarray:
+        """Patient-frame position (3,) of voxel (0, 0, 0), metres."""
+        return self.affine[:3, 3].copy()
+
+
 @dataclass(frozen=True, eq=False)
-class Volume:
+class Volume(AxisAlignedGrid):
     """CT + labels on one axis-aligned RAS grid (what the skin and landmark models are built
     from; ``sonogym.anatomy.Patient`` adds them).
 
@@ -74,16 +90,6 @@ class Volume:
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(self.ct.shape)
-
-    @property
-    def spacing(self) -> np.ndarray:
-        """Voxel size (3,) in metres."""
-        return np.diag(self.affine)[:3].copy()
-
-    @property
-    def origin(self) -> np.ndarray:
-        """Patient-frame position (3,) of voxel (0, 0, 0), metres."""
-        return self.affine[:3, 3].copy()
 
     @property
     def bounds(self) -> np.ndarray:

@@ -97,9 +97,8 @@ def load_policy(
 
 def checkpoint_step(path: str | Path) -> int | None:
     """The env step per env of ``agent_<t>.pt`` (None for another name)."""
-    stem = Path(path).stem
-    digits = stem.removeprefix("agent_")
-    return int(digits) if stem.startswith("agent_") and digits.isdigit() else None
+    m = _CKPT.search(Path(path).name)
+    return int(m.group(1)) if m else None
 
 
 def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int | None) -> None:

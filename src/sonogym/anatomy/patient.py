@@ -34,7 +34,7 @@ class Patient(Volume):
     def model(self) -> PatientModel:
         """This patient without its CT and label volumes (skin and landmarks computed now)."""
         return PatientModel(
-            self.name, self.affine.copy(), self.shape, dict(self.meta), self.skin, self.landmarks
+            self.name, self.affine.copy(), self.shape, self.skin, self.landmarks, dict(self.meta)
         )
 
 
@@ -48,9 +48,9 @@ class PatientModel(AxisAlignedGrid):
     name: str
     affine: np.ndarray
     shape: tuple[int, int, int]
+    skin: SkinSurface
+    landmarks: Landmarks
     meta: dict = field(default_factory=dict)
-    skin: SkinSurface | None = None
-    landmarks: Landmarks | None = None
 
     @property
     def ct(self):

@@ -24,9 +24,15 @@ SIMULATORS: tuple[str, ...] = get_args(SimulatorName)
 DEFAULT_LEARNED_NETS = (0, 1, 2, 3, 4)
 
 
-def check_simulator(name: str, learned_nets) -> None:
+def check_simulator(name: str, learned_nets, learned_precision: str = "float32") -> None:
     if name not in SIMULATORS:
         raise ValueError(f"simulator {name!r} is not one of {SIMULATORS}")
+    from sonogym.ultrasound.learned.simulator import PRECISIONS
+
+    if learned_precision not in PRECISIONS:
+        raise ValueError(
+            f"learned_precision must be one of {PRECISIONS}, got {learned_precision!r}"
+        )
     if name == "learned":
         from sonogym.ultrasound.learned.shipped import resolve_nets
 

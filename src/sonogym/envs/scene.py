@@ -56,13 +56,7 @@ class PatientScene:
         gel_depth: float | None = None,
         learned_precision: str = "float32",
     ) -> None:
-        check_simulator(simulator, learned_nets)
-        from sonogym.ultrasound.learned.simulator import PRECISIONS
-
-        if learned_precision not in PRECISIONS:
-            raise ValueError(
-                f"learned_precision must be one of {PRECISIONS}, got {learned_precision!r}"
-            )
+        check_simulator(simulator, learned_nets, learned_precision)
         self.learned_precision = learned_precision
         self.device = device
         self.num_envs = num_envs

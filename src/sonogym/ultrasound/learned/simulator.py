@@ -61,9 +61,9 @@ class LearnedSimulator:
         batch_size: images per forward pass (None: 16 on CPU, where small chunks stay in
             cache and run ~20 % faster than one big batch, 256 elsewhere).
         precision: "float32" (default) or "bfloat16": the generator's convolutions under
-            autocast in bfloat16 (about 3x faster on CPUs with AVX-512 BF16; images differ from
-            float32 by ~1e-3 on average, see docs/ultrasound.md). Inputs, normalisation and
-            outputs stay float32.
+            autocast in bfloat16 (the generator ~3x, a whole ``simulate`` 1.6-2.1x faster on
+            CPUs with AVX-512 BF16; images differ from float32 by ~1e-3 on average, see
+            docs/envs.md). Inputs, normalisation and outputs stay float32.
     """
 
     def __init__(

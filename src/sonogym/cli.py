@@ -479,6 +479,17 @@ def eval_(
         Path | None,
         typer.Option(help="Checkpoint to evaluate (default: the run's newest readable one)."),
     ] = None,
+    filter_mode: Annotated[
+        str | None,
+        typer.Option(
+            help="ppo-sf runs: safety filter mode, search (nearest action predicted safe) or "
+            "zero (the paper's: no motion); default the run's."
+        ),
+    ] = None,
+    filter_threshold: Annotated[
+        float | None,
+        typer.Option(help="ppo-sf runs: filter where Q_c > this, in [0, 1]; default the run's."),
+    ] = None,
 ) -> None:
     """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
     the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
@@ -491,6 +502,7 @@ def eval_(
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
             held_out_patients=held_out, checkpoint=checkpoint,
+            safety_filter={"mode": filter_mode, "threshold": filter_threshold},
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None

@@ -114,8 +114,10 @@ def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int |
 
 
 def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
-    """(cost critic in eval mode, filter threshold) of a ``ppo-sf`` run."""
+    """(cost critic in eval mode, filter threshold, filter mode) of a ``ppo-sf`` run (runs
+    written before the mode existed get today's default, ``SafetyParams.filter_mode``)."""
     from sonogym.agents.safety_filter import CostCritic
+    from sonogym.envs.spec import SafetyParams
 
     policy, cfg = load_policy(run, checkpoint, device)
     if cfg["algo"] != "ppo-sf":
@@ -127,7 +129,8 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
     )
     critic.load_state_dict(read_checkpoint(checkpoint, device)["cost_critic"])
     critic.eval()
-    return critic, float(cfg["task_config"]["cost_threshold"])
+    tc = cfg["task_config"]
+    return critic, float(tc["cost_threshold"]), tc.get("filter_mode", SafetyParams.filter_mode)
 
 
 #: Keys every run's ``config.json`` has (what evaluation reads).
@@ -155,13 +158,18 @@ def run_net(cfg: dict) -> str:
 class RLPolicy(StatelessPolicy):
     """A trained run acting deterministically (the Gaussian's mean action) on an env's
     observations, flattened as in training; a ``ppo-sf`` run acts through its safety filter
-    (actions with Q_c > threshold become 0)."""
+    (``filter_mode`` "search": an action with Q_c > threshold becomes the nearest candidate
+    predicted safe; "zero": it becomes 0)."""
 
-    def __init__(self, model, adapter: SkrlEnvAdapter, critic=None, threshold: float = 0.5):
+    def __init__(
+        self, model, adapter: SkrlEnvAdapter, critic=None, threshold: float = 0.5,
+        filter_mode: str = "search",
+    ):  # fmt: skip
         self.model = model
         self.adapter = adapter
         self.critic = critic
         self.threshold = threshold
+        self.filter_mode = filter_mode
 
     def act(self, obs, info) -> torch.Tensor:
         x = self.adapter.flatten(obs)
@@ -169,7 +177,7 @@ class RLPolicy(StatelessPolicy):
         if self.critic is not None:
             from sonogym.agents.safety_filter import filter_actions
 
-            action, _ = filter_actions(self.critic, x, action, self.threshold)
+            action, _ = filter_actions(self.critic, x, action, self.threshold, self.filter_mode)
         return action
 
 
@@ -187,6 +195,6 @@ def rl_policy(
         path = checkpoint or latest_readable_checkpoint(run)[0]
         adapter.standardizer.load_state_dict(read_checkpoint(path, device)["obs_standardizer"])
     if cfg["algo"] == "ppo-sf":
-        critic, threshold = load_cost_critic(run, checkpoint, device)
-        return RLPolicy(model, adapter, critic, threshold)
+        critic, threshold, mode = load_cost_critic(run, checkpoint, device)
+        return RLPolicy(model, adapter, critic, threshold, mode)
     return RLPolicy(model, adapter)

@@ -58,6 +58,7 @@ class TaskRLConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
     cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (cost in [0, 1])
+    filter_mode: str = "search"  # ppo-sf at test time: "search" or "zero" (safety_filter.py)
     cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
     pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd
 
@@ -91,6 +92,7 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         standardize_vectors=t.standardize_vectors,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,
+        filter_mode=safety.filter_mode,
         cost_limit=safety.cost_limit,
         pid_gains=safety.pid_gains,
     )

@@ -163,6 +163,7 @@ class SafetyParams:
 
     cost_learning_rate: float = 1e-4  # Adam lr of the cost critic / cost value (reference)
     cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (reference; c in [0, 1])
+    filter_mode: str = "search"  # ppo-sf at test time: "search" (ours) or "zero" (the paper's)
     cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
     pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd
 

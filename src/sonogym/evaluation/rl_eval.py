@@ -47,13 +47,16 @@ def evaluate_run(
     held_out_patients: int = 1,
     plot: bool = True,
     checkpoint: str | Path | None = None,
+    safety_filter: dict[str, Any] | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
     ``run``: an RL run (``sonogym train``) or an IL run (``sonogym il-train``, on a dataset
     ``sonogym record`` wrote). ``checkpoint``: the checkpoint to evaluate (default: the run's
     newest readable one; an unreadable newer RL checkpoint is skipped with a warning naming
-    it).
+    it). ``safety_filter``: a ``ppo-sf`` run's filter settings for this evaluation, keys
+    ``mode`` ("search" / "zero") and/or ``threshold`` (default: the run's); the filter acts
+    only at test time, so one trained run can be tested with several.
 
     ``protocol``: ``idt`` (default), ``odt-sim`` or ``odt-patient``
     (``sonogym.evaluation.protocols``): its test env options override the run's own, and its
@@ -91,9 +94,11 @@ def evaluate_run(
     overrides.update(env_overrides or {})
     name = protocol or ("custom" if env_overrides else "idt")
 
+    filt = check_safety_filter(trained, safety_filter)
     episodes = run_controllers(
-        trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint
-    )
+        trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint,
+        safety_filter=filt,
+    )  # fmt: skip
     results = {
         c: {
             k: (float(t.mean()), float(t.std()) if trials > 1 else 0.0)
@@ -112,6 +117,7 @@ def evaluate_run(
         "trials": trials,
         "controllers": list(episodes),
         "checkpoint": checkpoint.name,
+        **({"safety_filter": filt} if filt else {}),
         "train_env": to_jsonable(trained.env_kwargs),
         "test_env": to_jsonable({**trained.env_kwargs, **overrides}),
         "track_columns": list(track.columns),
@@ -133,6 +139,7 @@ def evaluate_run(
         "seed": seed,
         "protocol": name,
         "checkpoint": checkpoint.name,
+        **({"safety_filter": filt} if filt else {}),
         "env_overrides": to_jsonable(overrides),
         "results": results,
     }
@@ -141,15 +148,55 @@ def evaluate_run(
     return results
 
 
+def check_safety_filter(trained: TrainedRun, settings: dict[str, Any] | None) -> dict[str, Any]:
+    """The safety filter a ``ppo-sf`` run is evaluated with: the run's mode and threshold,
+    with ``settings`` (keys ``mode``, ``threshold``; None values: the run's) applied; {} for
+    other runs. Raises ValueError for settings a run without a filter cannot take, an unknown
+    mode or a threshold outside [0, 1] (Q_c estimates a cost in {0, 1})."""
+    from sonogym.agents.safety_filter import FILTER_MODES
+    from sonogym.envs.spec import SafetyParams
+
+    given = {k: v for k, v in (settings or {}).items() if v is not None}
+    if trained.algo != "ppo-sf":
+        if given:
+            raise ValueError(
+                f"safety filter settings {sorted(given)} apply to ppo-sf runs; "
+                f"{trained.path} is a {trained.algo} run"
+            )
+        return {}
+    unknown = sorted(set(given) - {"mode", "threshold"})
+    if unknown:
+        raise ValueError(f"unknown safety filter settings {unknown}; use mode and threshold")
+    tc = trained.config["task_config"]
+    out = {
+        "mode": given.get("mode", tc.get("filter_mode", SafetyParams.filter_mode)),
+        "threshold": float(given.get("threshold", tc["cost_threshold"])),
+    }
+    if out["mode"] not in FILTER_MODES:
+        raise ValueError(
+            f"unknown safety filter mode {out['mode']!r}; choose from {list(FILTER_MODES)}"
+        )
+    if not 0.0 <= out["threshold"] <= 1.0:
+        raise ValueError(
+            f"safety filter threshold must be in [0, 1] (a cost), got {out['threshold']}"
+        )
+    return out
+
+
 def controller_policy(
-    name: str, env, trained: TrainedRun, seed: int, device: str = "cpu", checkpoint=None
-):
+    name: str, env, trained: TrainedRun, seed: int, device: str = "cpu", checkpoint=None,
+    safety_filter: dict[str, Any] | None = None,
+):  # fmt: skip
     """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy (its
-    ``checkpoint``, default the newest readable; ``unfiltered``: a ``ppo-sf`` run's policy
-    without its safety filter), the task's expert (or heuristic), or uniform random actions
-    from ``seed``."""
+    ``checkpoint``, default the newest readable; a ``ppo-sf`` run's through its safety filter,
+    with ``safety_filter``'s mode / threshold if given; ``unfiltered``: without it), the
+    task's expert (or heuristic), or uniform random actions from ``seed``."""
     if name == "policy":
-        return run_policy(trained, env, checkpoint, device)
+        policy = run_policy(trained, env, checkpoint, device)
+        filt = check_safety_filter(trained, safety_filter)
+        if filt:
+            policy.filter_mode, policy.threshold = filt["mode"], filt["threshold"]
+        return policy
     if name == UNFILTERED and trained.algo == "ppo-sf":
         policy = run_policy(trained, env, checkpoint, device)
         policy.critic = None  # the same weights, acting without the filter
@@ -175,6 +222,7 @@ def run_controllers(
     env_overrides: dict[str, Any] | None = None,
     controllers: tuple[str, ...] = CONTROLLERS,
     checkpoint: str | Path | None = None,
+    safety_filter: dict[str, Any] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run ``trials`` episodes per controller in the run's env (with ``env_overrides``), all
     from the same seeded starts: {controller: {"metrics": {metric: (trials,) array},
@@ -187,8 +235,8 @@ def run_controllers(
     env = make_vec(trained.task, min(trials, envs or 16), **env_kwargs)
     out = {
         name: run_episodes(
-            env, controller_policy(name, env, trained, seed, device, checkpoint), trials, seed,
-            trained.task,
+            env, controller_policy(name, env, trained, seed, device, checkpoint, safety_filter),
+            trials, seed, trained.task,
         )
         for name in controllers
     }  # fmt: skip

@@ -314,8 +314,9 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
     task, net, device = cfg.task, cfg.rl.net, cfg.device
     layout, space = adapter.layout, adapter.action_space
     models = make_models(
-        task, layout, space, device, net, cfg.rl.init_log_std, cfg.rl.init_mean_gain
-    )
+        task, layout, space, device, net, cfg.rl.init_log_std, cfg.rl.init_mean_gain,
+        cfg.rl.mean_bound_penalty,
+    )  # fmt: skip
     if cfg.algo == "ppo-sf":
         from sonogym.agents.safety_filter import CostCritic
 

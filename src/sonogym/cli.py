@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated
 
@@ -122,7 +123,7 @@ def demo(
     from sonogym.evaluation.demo import run_demo
 
     _check_positive(("--envs", envs))
-    pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patient) if patient else None
+    pats = parse_patients(patient)
     run_demo(out, num_envs=envs, seed=seed, tasks=tuple(task) if task else None, patients=pats,
              log=typer.echo)  # fmt: skip
 
@@ -149,7 +150,10 @@ def train(
     ] = None,
     patients: Annotated[
         list[str] | None,
-        typer.Option(help="Phantom seed or TotalSegmentator folder; repeatable (default 0)."),
+        typer.Option(
+            help="Phantom seed, seed range A-B (inclusive) or TotalSegmentator folder; "
+            "repeatable (default 0)."
+        ),
     ] = None,
     simulator: Annotated[
         str | None, typer.Option(help="Ultrasound simulator: physical, sonogym or learned.")
@@ -211,7 +215,7 @@ def train(
 
     if preset is not None and preset not in PRESETS:
         raise typer.BadParameter(f"unknown preset {preset!r}; choose from {list(PRESETS)}")
-    pats = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients) if patients else None
+    pats = parse_patients(patients)
     env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
     if obs_mode is not None:
         env_kwargs["obs_mode"] = obs_mode
@@ -357,6 +361,24 @@ def _check_positive(*options: tuple[str, int | None]) -> None:
             raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
 
 
+def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
+    """Patients from the command line: an integer is a phantom seed, ``A-B`` (digits, A <= B)
+    the seeds A..B inclusive, anything else a subject folder; None when none were given."""
+    if not specs:
+        return None
+    out: list[int | str] = []
+    for p in specs:
+        m = re.fullmatch(r"(\d+)-(\d+)", p.strip())
+        if m:
+            lo, hi = int(m.group(1)), int(m.group(2))
+            if lo > hi:
+                raise typer.BadParameter(f"patient range {p!r}: {lo} > {hi}; write it low-high")
+            out.extend(range(lo, hi + 1))
+        else:
+            out.append(int(p) if p.lstrip("-").isdigit() else p)
+    return tuple(out)
+
+
 def _env_options(simulator, learned_nets, patients, phantom_spacing) -> dict:
     """Env options from the shared command-line flags (only those given)."""
     kw: dict = {}
@@ -367,7 +389,7 @@ def _env_options(simulator, learned_nets, patients, phantom_spacing) -> dict:
             int(v) if v.strip().isdigit() else v.strip() for v in learned_nets.split(",")
         )
     if patients:
-        kw["patients"] = tuple(int(p) if p.lstrip("-").isdigit() else p for p in patients)
+        kw["patients"] = parse_patients(patients)
     if phantom_spacing is not None:
         kw["phantom_spacing"] = phantom_spacing * 1e-3
     return kw
@@ -407,7 +429,10 @@ def sweep(
     obs_mode: Annotated[str | None, typer.Option(help="Observation mode (e.g. state).")] = None,
     simulator: Annotated[str | None, typer.Option(help="physical, sonogym or learned.")] = None,
     learned_nets: Annotated[str | None, typer.Option(help="Comma-separated nets.")] = None,
-    patients: Annotated[list[str] | None, typer.Option(help="Patients; repeatable.")] = None,
+    patients: Annotated[
+        list[str] | None,
+        typer.Option(help="Phantom seeds, seed ranges A-B or subject folders; repeatable."),
+    ] = None,
     phantom_spacing: Annotated[float | None, typer.Option(help="Phantom voxel size, mm.")] = None,
     threads: Annotated[int | None, typer.Option(help="torch threads per trial.")] = None,
     device: Annotated[str | None, typer.Option(help="cpu or cuda.")] = None,
@@ -490,6 +515,20 @@ def eval_(
         float | None,
         typer.Option(help="ppo-sf runs: filter where Q_c > this, in [0, 1]; default the run's."),
     ] = None,
+    patients: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Test on these patients instead (phantom seeds, ranges A-B or subject "
+            "folders; repeatable); not with --protocol other than idt."
+        ),
+    ] = None,
+    name: Annotated[
+        str | None,
+        typer.Option(
+            help="Name of the saved table and episode log (default: the protocol's; "
+            "'custom' with --patients)."
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
     the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
@@ -498,19 +537,29 @@ def eval_(
 
     if protocol not in PROTOCOLS:
         raise typer.BadParameter(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
+    overrides = None
+    if patients:
+        if protocol != "idt":
+            raise typer.BadParameter(
+                f"--patients replaces the test patients; it cannot be combined with --protocol "
+                f"{protocol}, which sets its own"
+            )
+        overrides, protocol = {"patients": parse_patients(patients)}, None
+    if name is not None and not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+        raise typer.BadParameter(f"--name {name!r}: use letters, digits, '_', '.' and '-' only")
     try:
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
-            held_out_patients=held_out, checkpoint=checkpoint,
+            held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
+            name=name,
             safety_filter={"mode": filter_mode, "threshold": filter_threshold},
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
     typer.echo(format_table(results), nl=False)
-    stem = "eval" if protocol == "idt" else f"eval-{protocol}"
-    typer.echo(
-        f"wrote {run}/{stem}.md, {stem}.json, episodes/{protocol}.npz, trajectories-{protocol}.png"
-    )
+    log = name or protocol or "custom"
+    stem = "eval" if log == "idt" else f"eval-{log}"
+    typer.echo(f"wrote {run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png")
 
 
 @app.command(context_settings={"allow_extra_args": True})

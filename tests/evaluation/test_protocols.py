@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import pytest
 
-from sonogym.evaluation.cohort import HELD_OUT_PATIENTS, TRAIN_PATIENTS, held_out, overlap
+from sonogym.evaluation.cohort import (
+    HELD_OUT_PATIENTS,
+    LEARNED_DATA_SEEDS,
+    POPULATION_PATIENTS,
+    TRAIN_PATIENTS,
+    held_out,
+    overlap,
+)
 from sonogym.evaluation.protocols import (
     PROTOCOLS,
     ProtocolError,
@@ -19,6 +26,11 @@ def test_cohort_is_disjoint_and_extends_without_overlap():
     assert not overlap(TRAIN_PATIENTS, held_out(50))
     with pytest.raises(ValueError, match="learned simulator"):
         held_out(2000)
+    # the population's 32 training phantoms are apart from every held-out and data seed
+    assert len(POPULATION_PATIENTS) == 32 and max(POPULATION_PATIENTS) < LEARNED_DATA_SEEDS
+    assert not overlap(POPULATION_PATIENTS, held_out(95) + TRAIN_PATIENTS)
+    with pytest.raises(ValueError, match="population"):
+        held_out(96)
     assert overlap([0, "5"], [5]) == (5,)  # CLI digit strings name seeds
 
 

@@ -53,6 +53,17 @@ def test_eval_cli_and_errors(nav_run, tmp_path):
     res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--trials", "2", "--envs", "2"])
     assert res.exit_code == 0, res.output
     assert "| policy |" in res.output and "position_error_mm" in res.output
+    # other test patients: a seed range, saved under the name given
+    res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--trials", "2", "--envs", "2",
+                                   "--patients", "7-8", "--name", "pop"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    saved = json.loads((nav_run / "eval-pop.json").read_text())
+    assert saved["env_overrides"]["patients"] == [7, 8] and saved["protocol"] == "pop"
+    res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--patients", "8-7"])
+    assert res.exit_code != 0 and "8 > 7" in res.output
+    res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--patients", "7",
+                                   "--protocol", "odt-patient"])  # fmt: skip
+    assert res.exit_code != 0 and "cannot be combined" in res.output
     with pytest.raises(FileNotFoundError, match="config.json"):
         evaluate_run(tmp_path)
     with pytest.raises(ValueError, match="unknown controllers"):

@@ -5,9 +5,11 @@ Patients are procedural phantom seeds (``sonogym.anatomy.load_phantom``):
 * ``TRAIN_PATIENTS`` = seeds 0-4: the five training patients (paper: "train on 5 patients");
 * ``HELD_OUT_PATIENTS`` = seed 5: the held-out sixth patient, never in a training config.
 
-More held-out patients come from :func:`held_out` (seeds 5, 6, ...), which never overlap the
-training seeds. Phantom seeds >= ``LEARNED_DATA_SEEDS`` (1000) are the learned simulator's
-training phantoms (``sonogym lb-data``) and are not handed out as patients either.
+More held-out patients come from :func:`held_out` (seeds 5, 6, ... 99), which never overlap
+the training seeds. ``POPULATION_PATIENTS`` = seeds 100-131: the 32 training phantoms of the
+population study (policies trained across many patients, tested on held-out ones; CLI
+``--patients 100-131``). Phantom seeds >= ``LEARNED_DATA_SEEDS`` (1000) are the learned
+simulator's training phantoms (``sonogym lb-data``) and are not handed out as patients either.
 """
 
 from __future__ import annotations
@@ -20,18 +22,22 @@ TRAIN_PATIENTS: tuple[int, ...] = (0, 1, 2, 3, 4)
 HELD_OUT_PATIENTS: tuple[int, ...] = (5,)
 #: First phantom seed of the learned simulator's paired data (kept apart from patients).
 LEARNED_DATA_SEEDS = 1000
+#: The population study's training phantoms (seeds 100-131), apart from every held-out seed.
+POPULATION_PATIENTS: tuple[int, ...] = tuple(range(100, 132))
 
 
 def held_out(n: int = 1) -> tuple[int, ...]:
-    """``n`` held-out phantom seeds: 5, 6, ... (never a training seed, never >= 1000)."""
+    """``n`` held-out phantom seeds: 5, 6, ... 99 (never a training seed of the cohort or
+    the population, never the learned simulator's data)."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     first = max(TRAIN_PATIENTS) + 1
     seeds = tuple(range(first, first + n))
-    if seeds[-1] >= LEARNED_DATA_SEEDS:
+    if seeds[-1] >= POPULATION_PATIENTS[0]:
         raise ValueError(
-            f"at most {LEARNED_DATA_SEEDS - first} held-out phantoms (seeds >= "
-            f"{LEARNED_DATA_SEEDS} are the learned simulator's data)"
+            f"at most {POPULATION_PATIENTS[0] - first} held-out phantoms (seeds "
+            f"{POPULATION_PATIENTS[0]}-{POPULATION_PATIENTS[-1]} are the population's training "
+            f"phantoms, seeds >= {LEARNED_DATA_SEEDS} the learned simulator's data)"
         )
     assert not set(seeds) & set(TRAIN_PATIENTS)
     return seeds

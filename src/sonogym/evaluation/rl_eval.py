@@ -48,6 +48,7 @@ def evaluate_run(
     plot: bool = True,
     checkpoint: str | Path | None = None,
     safety_filter: dict[str, Any] | None = None,
+    name: str | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
@@ -61,7 +62,8 @@ def evaluate_run(
     ``protocol``: ``idt`` (default), ``odt-sim`` or ``odt-patient``
     (``sonogym.evaluation.protocols``): its test env options override the run's own, and its
     trials (100) and seed (1000) are the defaults. ``env_overrides`` may add other env options
-    (not the protocol's). Without a protocol but with overrides the log is named ``custom``.
+    (not the protocol's). Without a protocol but with overrides the log is named ``custom``;
+    ``name`` names it instead (e.g. one log per set of test patients).
 
     Writes ``eval.json`` / ``eval.md`` (``eval-<protocol>.*`` for other than ``idt``), the
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
@@ -92,7 +94,7 @@ def evaluate_run(
             f"env_overrides {clash} contradict protocol {protocol!r}, which sets them itself"
         )
     overrides.update(env_overrides or {})
-    name = protocol or ("custom" if env_overrides else "idt")
+    name = name or protocol or ("custom" if env_overrides else "idt")
 
     filt = check_safety_filter(trained, safety_filter)
     episodes = run_controllers(

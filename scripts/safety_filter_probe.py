@@ -57,8 +57,9 @@ def main() -> None:
     cost = r["cost"]
     print(f"{args.envs} episodes, unsafe steps {cost.mean():.1%}, threshold {threshold}")
     print(f"AUC of Q_c(o, a) against the cost: {auc(r['q_action'].ravel(), cost.ravel()):.4f}")
-    print(f"safe steps rated > threshold: {(r['q_action'][cost == 0] > threshold).mean():.2%}; "
-          f"unsafe steps rated <= threshold: {(r['q_action'][cost == 1] <= threshold).mean():.2%}")  # fmt: skip
+    false_alarm = (r["q_action"][cost == 0] > threshold).mean()
+    missed = (r["q_action"][cost == 1] <= threshold).mean()
+    print(f"safe steps rated > threshold: {false_alarm:.2%}; unsafe rated <= it: {missed:.2%}")
     np.set_printoptions(precision=2, suppress=True, linewidth=160)
     for e in np.flatnonzero(cost.any(0))[:3]:
         t = int(np.argmax(cost[:, e] > 0))

@@ -18,7 +18,7 @@ import torch
 
 from sonogym.anatomy import Patient, SkinSurface
 from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator, simulate_us
-from sonogym.envs.patients import resolve_patients
+from sonogym.envs.patients import resolve_patients, return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
 
 #: CT window of the "ct" observation mode, HU -> [0, 1].
@@ -101,6 +101,7 @@ class PatientScene:
         construction, after everything that reads the volumes."""
         self.build_imaging()
         self.patients = [p.model() if isinstance(p, Patient) else p for p in self.patients]
+        return_freed_memory()
 
     def draw_nets(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
         """Draw the learned net of each env in ``env_ids`` from uniforms ``u`` (see NetChoice)."""

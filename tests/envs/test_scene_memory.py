@@ -55,3 +55,26 @@ def test_built_env_keeps_no_full_patient_volume(task):
     # ... and images still come: the slicer holds the compact copy
     obs, _ = env.reset(seed=0)
     env.step(torch.zeros(env.action_space.shape))
+
+
+@pytest.mark.parametrize("task", ["navigation", "reconstruction", "surgery"])
+def test_envs_slice_only_what_their_probe_can_reach_with_the_same_images(task):
+    """crop_to_reach (default) keeps a fraction of each volume; over random steps the slices
+    equal the uncropped ones (CT to float32 rounding of coordinates, labels exactly)."""
+    out = []
+    for crop in (True, False):
+        env = make_vec(task, 2, patients=(0,), phantom_spacing=0.002, crop_to_reach=crop)
+        env.reset(seed=3)
+        g = torch.Generator().manual_seed(0)
+        high = torch.as_tensor(env.single_action_space.high)
+        cts, labs = [], []
+        for _ in range(12):
+            env.step((torch.rand((2, *high.shape), generator=g) * 2 - 1) * high)
+            s = env.scene.slices()
+            cts.append(s.ct.clone())
+            labs.append(s.labels.clone())
+        out.append((torch.stack(cts), torch.stack(labs), env.scene.slicer))
+    (ct1, lab1, sl1), (ct0, lab0, sl0) = out
+    assert sl1.cropped and not sl0.cropped
+    assert sl1.nbytes < 0.85 * sl0.nbytes
+    assert (ct1 - ct0).abs().max() < 0.05 and torch.equal(lab1, lab0)

@@ -153,3 +153,26 @@ def test_bad_patient_index_raises(patient):
         sl(pos, rot, patient_index=torch.tensor([0, 1]))
     with pytest.raises(TypeError, match="Patient"):
         Slicer([], SMALL)
+
+
+def test_a_crop_keeps_only_the_box_and_images_inside_it_are_unchanged(patient):
+    full = Slicer(patient, SMALL)
+    box = (np.array([-0.02, -0.005, -0.01]), np.array([0.02, 0.035, 0.01]))
+    crop = Slicer(patient, SMALL, crop_boxes=[box])
+    assert crop.cropped and not full.cropped
+    assert crop.nbytes < full.nbytes / 2
+    pos, rot = straight_down(
+        3, x=torch.tensor([0.0, 0.005, -0.008]), z=torch.tensor([0.0, 0.004, -0.006])
+    )
+    a, b = full(pos, rot), crop(pos, rot)
+    # the same samples, up to float32 rounding of coordinates relative to another corner
+    assert (a.ct - b.ct).abs().max() < 0.05
+    assert torch.equal(a.labels, b.labels)
+    # an image that leaves the box where the box cuts the volume is refused, not misread
+    pos, rot = straight_down(1, x=0.02)
+    with pytest.raises(ValueError, match="leaves the region of its patient"):
+        crop(pos, rot)
+    with pytest.raises(ValueError, match="lo < hi"):
+        Slicer(patient, SMALL, crop_boxes=[(box[1], box[0])])
+    with pytest.raises(ValueError, match="1 patients"):
+        Slicer(patient, SMALL, crop_boxes=[box, box])

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from sonogym.envs.scene import PatientScene
+from sonogym.envs.scene import ImagingReach, PatientScene
 from sonogym.geometry import wrap_angle
 from sonogym.ultrasound import ProbeGeometry
 
@@ -39,6 +39,7 @@ class ProbeScene(PatientScene):
         probe: ProbeGeometry | None = None,
         learned_nets=(0, 1, 2, 3, 4),
         learned_precision: str = "float32",
+        reach: ImagingReach | None = None,
     ) -> None:
         super().__init__(
             patients,
@@ -50,6 +51,7 @@ class ProbeScene(PatientScene):
             device,
             probe or ProbeGeometry.linear_2d(),
             learned_precision=learned_precision,
+            reach=reach,
         )
         self.robot = robot
         self.reachable = torch.ones(num_envs, dtype=torch.bool, device=device)
@@ -62,7 +64,12 @@ class ProbeScene(PatientScene):
     @classmethod
     def from_config(cls, cfg, num_envs: int, device: torch.device, render: bool) -> ProbeScene:
         """The scene of a probe task's config (its ``patients``, ``phantom_spacing``,
-        ``simulator``, ``learned_nets``, ``robot`` and ``target_vertebra`` fields)."""
+        ``simulator``, ``learned_nets``, ``robot`` and ``target_vertebra`` fields; with
+        ``crop_to_reach``, images slice only what a probe within ``workspace_half_extent``
+        of the target, tilted up to ``tilt_limit`` (+ 0.1 rad for the arm), can image)."""
+        reach = None
+        if cfg.crop_to_reach:
+            reach = ImagingReach(cfg.workspace_half_extent, getattr(cfg, "tilt_limit", 0.0) + 0.1)
         return cls(
             cfg.patients,
             num_envs,
@@ -74,6 +81,7 @@ class ProbeScene(PatientScene):
             target_vertebra=cfg.target_vertebra,
             device=device,
             render=render,
+            reach=reach,
         )
 
     @property

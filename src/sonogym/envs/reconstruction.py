@@ -123,6 +123,7 @@ class ReconstructionConfig:
     simulator: SimulatorName = "physical"  # of env.scene.observe("us") (viewing only; not sensed)
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
+    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
     obs_mode: ObsMode = "reconstruction"  # Dict observation, or the privileged state
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)

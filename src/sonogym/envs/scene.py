@@ -10,7 +10,7 @@ and keep ``probe_pos`` (N, 3) and ``probe_rot`` (N, 3, 3) up to date.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -23,6 +23,54 @@ from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
 
 #: CT window of the "ct" observation mode, HU -> [0, 1].
 CT_WINDOW = (-1000.0, 2000.0)
+
+#: m added on every side of a crop box: the reached probe pose may trail the clamped command.
+REACH_MARGIN = 0.015
+
+
+@dataclass(frozen=True)
+class ImagingReach:
+    """Where a task's probe can be: its face on the skin within ``half_extent`` (m) of the
+    target vertebra's centre in x and z, its beam within ``tilt`` (rad) of the skin's inward
+    normal there, any yaw."""
+
+    half_extent: float
+    tilt: float = 0.0
+
+
+def imaging_reach_boxes(
+    skin: SkinSurface, centres: np.ndarray, reach: ImagingReach, probe: ProbeGeometry,
+    grid: float = 0.002,
+) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """Per patient, the (lo, hi) box of {P} (m) that contains every pixel of every probe image
+    within ``reach`` (plus ``REACH_MARGIN``): what a slicer must keep (``Slicer(crop_boxes=)``).
+
+    For a face centre s with beam n (unit), a pixel lies at s + d n + q, 0 <= d <= depth and q
+    in the plane normal to n with |q| <= r (r: half the diagonal of the array and elevation
+    extents), so along axis k it lies within s_k + [min(0, depth n_k), max(0, depth n_k)]
+    +- r sin(angle(n, e_k)). The bound is taken over the skin on a ``grid`` (m) lattice of the
+    reach square, with n anywhere in the cone of half-angle ``tilt`` around the normal."""
+    half = reach.half_extent + REACH_MARGIN
+    u = np.arange(-half, half + grid / 2, grid)
+    r = float(np.hypot(probe.width / 2, probe.elevation_px * probe.elevation_spacing / 2))
+    boxes = []
+    for p, c in enumerate(np.asarray(centres, dtype=np.float64)):
+        gx, gz = np.meshgrid(c[0] + u, c[2] + u, indexing="ij")
+        x = torch.as_tensor(gx.ravel(), dtype=torch.float32)
+        z = torch.as_tensor(gz.ravel(), dtype=torch.float32)
+        idx = torch.full_like(x, p, dtype=torch.long)
+        y = skin.height(x.to(skin.device), z.to(skin.device), idx.to(skin.device)).cpu()
+        n = skin.normal(x.to(skin.device), z.to(skin.device), idx.to(skin.device)).cpu()
+        s = torch.stack([x, y, z], -1).double().numpy()
+        ang = np.arccos(np.clip(n.double().numpy(), -1, 1))  # (M, 3): angle of n to each axis
+        a_lo, a_hi = np.clip(ang - reach.tilt, 0, np.pi), np.clip(ang + reach.tilt, 0, np.pi)
+        n_lo, n_hi = np.cos(a_hi), np.cos(a_lo)  # range of n_k over the cone
+        sin_max = np.where((a_lo <= np.pi / 2) & (a_hi >= np.pi / 2), 1.0,
+                           np.maximum(np.sin(a_lo), np.sin(a_hi)))  # fmt: skip
+        lo = s + np.minimum(0, probe.depth * n_lo) - r * sin_max
+        hi = s + np.maximum(0, probe.depth * n_hi) + r * sin_max
+        boxes.append((lo.min(0) - REACH_MARGIN, hi.max(0) + REACH_MARGIN))
+    return boxes
 
 
 class PatientScene:
@@ -41,6 +89,8 @@ class PatientScene:
         gel_depth: m, coupling gel under the probe face, overriding the model-based preset's
             (None keeps the preset's).
         learned_precision: working precision of the learned nets ("float32", "bfloat16").
+        reach: where the task's probe can be; the slicer then keeps only what it can image
+            (``imaging_reach_boxes``); None keeps the whole volumes.
     """
 
     def __init__(
@@ -55,8 +105,10 @@ class PatientScene:
         probe: ProbeGeometry,
         gel_depth: float | None = None,
         learned_precision: str = "float32",
+        reach: ImagingReach | None = None,
     ) -> None:
         check_simulator(simulator, learned_nets, learned_precision)
+        self.reach = reach
         self.learned_precision = learned_precision
         self.device = device
         self.num_envs = num_envs
@@ -78,7 +130,11 @@ class PatientScene:
     # ---------------------------------------------------------------- imaging
     @cached_property
     def slicer(self) -> Slicer:
-        return Slicer(self.patients, self.probe_geometry, device=self.device)
+        boxes = None
+        if self.reach is not None:
+            centres = self.target_centres_p.cpu().numpy()
+            boxes = imaging_reach_boxes(self.skin, centres, self.reach, self.probe_geometry)
+        return Slicer(self.patients, self.probe_geometry, device=self.device, crop_boxes=boxes)
 
     @cached_property
     def simulator(self):

@@ -137,6 +137,7 @@ class SurgeryConfig:
     simulator: SimulatorName = "physical"
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
+    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
     obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
@@ -347,6 +348,8 @@ class SurgeryEnv(TorchVectorEnv):
             probe_settle_steps=cfg.probe_settle_steps,
             gel_depth=cfg.gel_depth,
             render=cfg.obs_mode != "state",
+            crop_to_reach=cfg.crop_to_reach,
+            probe_offset_noise=cfg.probe_offset_noise,
         )
         n, dev = num_envs, self.device
         f32 = dict(dtype=torch.float32, device=dev)

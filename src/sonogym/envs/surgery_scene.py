@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from sonogym.envs.imaging import DEFAULT_LEARNED_NETS
-from sonogym.envs.scene import PatientScene
+from sonogym.envs.scene import ImagingReach, PatientScene
 from sonogym.geometry import in_frame, matrix_from_axis_angle, normalize
 from sonogym.ultrasound import ProbeGeometry
 
@@ -115,6 +115,8 @@ class SurgeryScene(PatientScene):
         render: bool = True,
         learned_nets=DEFAULT_LEARNED_NETS,
         learned_precision: str = "float32",
+        crop_to_reach: bool = True,
+        probe_offset_noise: float = 0.005,
     ) -> None:
         from sonogym.robots import SURGERY_DRILL_BASE, SURGERY_PROBE_BASE
 
@@ -131,6 +133,11 @@ class SurgeryScene(PatientScene):
             ProbeGeometry.volume_3d(),
             gel_depth,
             learned_precision,
+            # the still probe: on the skin probe_offset (+ noise) from the midline, tilted
+            # probe_tilt from the normal (0.1 rad more for the arm's settle)
+            ImagingReach(probe_offset + probe_offset_noise, probe_tilt + 0.1)
+            if crop_to_reach
+            else None,
         )
         self.side = side
         self.skin_distance = float(skin_distance)

@@ -20,6 +20,12 @@ lines change brightness with how an edge's ramp is sampled (as the reference's d
 nearest-voxel lookup): same structures, correlation > 0.9, line brightness within ~30 %.
 ``upsample=False`` samples every pixel directly.
 
+Cropping (``crop_boxes``): a slicer may hold, per patient, only the box of the patient frame
+that the task's probes can image (``sonogym.envs.scene.imaging_reach_boxes``); outside it reads
+as air like outside the volume. Images are unchanged as long as every image stays inside the
+box, which each call checks (``expect_all``: at once on CPU, queued on CUDA) on the corners of
+every image plane, on the sides where the box cuts the volume.
+
 Gathers run depth-first along the volume's contiguous axis (y, the beam's usual direction) in
 chunks of envs that fit in cache, with int32 indices and ``index_select`` (3-5x faster than
 ``take``/advanced indexing on CPU), and all temporaries live in reused buffers.
@@ -153,6 +159,36 @@ def check_poses(pos: torch.Tensor, rot: torch.Tensor) -> None:
     expect_all(torch.isfinite(pos).all(-1) & torch.isfinite(rot).flatten(1).all(-1), detail)
 
 
+def _crop_range(patient: Patient, box) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """([(first, end) voxel range per axis], (2, 3) limits in {P} that images must stay in)
+    of the part of ``patient`` a slicer keeps for crop box ``box`` (None: all of it).
+
+    The range covers the box plus one voxel (a sample inside the box interpolates from the next
+    voxel); the limits are the box on each side where the range cuts the volume and +-inf
+    where it does not (there, what lies beyond is outside the volume, air either way)."""
+    shape = patient.shape
+    lim = np.array([[-np.inf] * 3, [np.inf] * 3])
+    if box is None:
+        return [(0, n) for n in shape], lim
+    lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in box)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo < hi).all()):
+        raise ValueError(f"crop box must have finite corners lo < hi, got {lo} and {hi}")
+    sp, org = np.asarray(patient.spacing), np.asarray(patient.origin)
+    first = np.floor((lo - org) / sp).astype(int) - 1
+    end = np.ceil((hi - org) / sp).astype(int) + 2
+    keep = []
+    for k, n in enumerate(shape):
+        a, b = max(0, int(first[k])), min(n, int(end[k]))
+        if a >= b:  # the box misses the volume on this axis: keep one voxel, all reads are air
+            a, b = (0, 1) if first[k] < 0 else (n - 1, n)
+        keep.append((a, b))
+        if a > 0:
+            lim[0, k] = lo[k]
+        if b < n:
+            lim[1, k] = hi[k]
+    return keep, lim
+
+
 def upsample_linear(src: torch.Tensor, dim: int, k: int, out: torch.Tensor) -> torch.Tensor:
     """Linear upsampling by an integer factor k along ``dim`` into ``out`` (size n * k there).
 
@@ -195,6 +231,8 @@ class Slicer:
             docstring); False samples every pixel.
         chunk_samples: volume samples per chunk of envs (bounds the scratch memory and keeps it
             in cache); default 2**17 on CPU, everything at once on CUDA.
+        crop_boxes: per patient, None (keep the whole volume) or (lo, hi), two (3,) corners in
+            {P} (m) of the region to keep; see the module docstring.
 
     Memory: a padded copy of every patient, CT as float16 (HU to 0.5 HU below 1024 HU, 1 HU
     to 2048, 2 HU above) and labels as uint8: 3 bytes per voxel, plus reusable scratch
@@ -208,6 +246,7 @@ class Slicer:
         device: torch.device | str | None = None,
         upsample: bool = True,
         chunk_samples: int | None = None,
+        crop_boxes: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None,
     ) -> None:
         if isinstance(patients, Patient):
             patients = [patients]
@@ -224,14 +263,24 @@ class Slicer:
             chunk_samples = 2**17 if self.device.type == "cpu" else 2**40
         self.chunk_samples = int(chunk_samples)
 
+        if crop_boxes is None:
+            crop_boxes = [None] * len(patients)
+        if len(crop_boxes) != len(patients):
+            raise ValueError(
+                f"crop_boxes has {len(crop_boxes)} entries for {len(patients)} patients"
+            )
         cts, labs, offs, dims, orgs, sps, seeds = [], [], [], [], [], [], []
+        lims = []  # per patient: (lo, hi) in {P} that images must stay in (+-inf: not cut)
         off = 0
-        for p in patients:
-            dx, dy, dz = (s + 2 for s in p.shape)
+        for p, box in zip(patients, crop_boxes, strict=True):
+            keep, lim = _crop_range(p, box)
+            lims.append(lim)
+            part = tuple(slice(a, b) for a, b in keep)
+            dx, dy, dz = (b - a + 2 for a, b in keep)
             ct = torch.full((dx, dy, dz), AIR_HU, dtype=torch.float16)
-            ct[1:-1, 1:-1, 1:-1] = p.ct.to("cpu")
+            ct[1:-1, 1:-1, 1:-1] = p.ct[part].to("cpu")
             lab = torch.zeros((dx, dy, dz), dtype=torch.uint8)
-            lab[1:-1, 1:-1, 1:-1] = p.labels.to("cpu")
+            lab[1:-1, 1:-1, 1:-1] = p.labels[part].to("cpu")
             # Memory order (X, Z, Y): y (anterior, the beam's usual direction) is contiguous, so
             # the gathers below, which run along depth, touch neighbouring memory.
             cts.append(ct.permute(0, 2, 1).reshape(-1))
@@ -240,7 +289,8 @@ class Slicer:
             off += ct.numel()
             dims.append([dx, dy, dz])
             sp = p.spacing
-            orgs.append(p.origin - sp)  # padded voxel 0 sits one voxel before the origin
+            first = np.array([a for a, _ in keep], dtype=np.float64)
+            orgs.append(p.origin + (first - 1) * sp)  # padded voxel 0: one before the first kept
             sps.append(sp)
             seeds.append(speckle_seed(p))
         if off >= 2**31:
@@ -259,6 +309,8 @@ class Slicer:
         self._origin = torch.tensor(np.array(orgs), dtype=torch.float64, device=dev)  # (P, 3)
         self._spacing = torch.tensor(np.array(sps), dtype=torch.float64, device=dev)  # (P, 3)
         self._seeds = torch.tensor(seeds, dtype=torch.int64, device=dev)
+        self._lim = torch.tensor(np.array(lims), dtype=torch.float64, device=dev)  # (P, 2, 3)
+        self.cropped = bool(np.isfinite(np.array(lims)).any())
         self._ws = Workspace(dev)
         min_spacing = min(float(s.min()) for s in sps)
         pr = self.probe
@@ -282,6 +334,25 @@ class Slicer:
     def default_patient_index(self, n: int) -> torch.Tensor:
         """Round-robin assignment of n envs to the patients (env i -> patient i % P)."""
         return torch.arange(n, device=self.device) % self.num_patients
+
+    def _check_in_crop(self, origin, row_step, col_step, pidx) -> None:
+        """Every image plane's corners inside its patient's crop box (on the cut sides): the
+        images are convex, so then every pixel is."""
+        pr = self.probe
+        down = (pr.depth_px - 1) * row_step[:, None, None, :]  # (N, 1, 1, 3)
+        across = (pr.width_px - 1) * col_step[:, None, None, :]
+        o = origin[:, :, None, :]  # (N, E, 1, 3)
+        corners = torch.cat([o, o + down, o + across, o + down + across], 2)  # (N, E, 4, 3)
+        lim = self._lim[pidx][:, None, None]  # (N, 1, 1, 2, 3)
+        inside = (corners >= lim[..., 0, :]) & (corners <= lim[..., 1, :])
+        expect_all(
+            inside.flatten(1).all(1),
+            lambda: (
+                "a probe image leaves the region of its patient this slicer keeps "
+                "(crop_boxes): the env's imaging reach is too small for this pose; build the env "
+                "with crop_to_reach=False and report the pose"
+            ),
+        )
 
     # --------------------------------------------------------------- geometry
     def _geometry(
@@ -336,6 +407,8 @@ class Slicer:
             ct = torch.empty(shape, dtype=torch.float32, device=self.device)
             lab = torch.empty(shape, dtype=torch.uint8, device=self.device)
         origin, row_step, col_step = self._geometry(pos, rot)
+        if self.cropped:
+            self._check_in_crop(origin, row_step, col_step, pidx)
         kz, kx = self.block
         per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
         step = max(1, self.chunk_samples // per_env)

@@ -53,8 +53,8 @@ def test_mean_outside_the_box_is_pulled_back_in_by_gradient_steps():
     assert torch.equal(b[:3], torch.zeros(3))  # inside the box: untouched
 
 
-def test_surgery_trains_with_the_penalty_and_it_is_validated():
-    assert task_config("surgery").mean_bound_penalty == 10.0
-    assert task_config("navigation").mean_bound_penalty == 0.0
+def test_penalty_is_a_task_setting_off_by_default_and_validated():
+    assert task_config("surgery").mean_bound_penalty == 0.0
+    assert task_config("surgery", mean_bound_penalty=10.0).mean_bound_penalty == 10.0
     with pytest.raises(ValueError, match="mean_bound_penalty must be >= 0"):
         SharedActorCritic("surgery", LAYOUT, BOX, "cpu", "paper", 0.0, 1.0, -1.0)

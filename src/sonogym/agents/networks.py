@@ -219,10 +219,11 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         outside the action box, to whatever loss is back-propagated (PPO's, A2C's).
 
         Why: the env clips actions, so a mean outside the box acts like the box's edge and
-        gets no learning signal once sigma is small (samples never fall inside); seed 1 of
-        the surgery state runs collapsed this way, its rotation means 0.1-1.05 rad against a
-        0.1 rad box in 60-85 % of steps, and never came back (docs/results.md). The penalty
-        is 0 inside the box, so it changes nothing for a mean that stays there."""
+        gets no learning signal once sigma is small (samples never fall inside). A collapsed
+        surgery state run had its rotation means at 0.1-1.05 rad against a 0.1 rad box in
+        60-85 % of steps. Off by default (0): at 10, that seed trained well but another
+        still collapsed and a third stalled (docs/results.md). The penalty is 0 inside the
+        box, so it changes nothing for a mean that stays there."""
         excess = torch.relu(mean - self.action_high) - torch.relu(self.action_low - mean)
         extra = (2 * self.mean_bound_penalty / mean.shape[0]) * excess
         return lambda grad: grad + extra

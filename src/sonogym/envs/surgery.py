@@ -580,9 +580,9 @@ SPEC = TaskSpec(
         final_log_std=math.log(0.005),
         anneal_steps=100_000,
         init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
-        # pull a mean that leaves the action box back in (networks.SharedActorCritic): with
-        # sigma ~0.04 one seed in three ran its rotation means out of the box and stayed there
-        mean_bound_penalty=10.0,
+        # mean_bound_penalty stays 0: at 10 (networks.SharedActorCritic) seed 1 no longer ran
+        # its rotation means out of the box, but seed 2 collapsed anyway and seed 0 stalled
+        # (docs/results.md, 2026-11-25)
         standardize_vectors=True,  # poses in metres: mm differences at order 1
         # measured on 2 CPU cores (obs_mode="state", 64 envs): the paper's table (16 rollouts,
         # 32 mini-batches of 32, 3 epochs, lr 1e-4) had reached only p_l after 0.33 M env steps

@@ -15,8 +15,8 @@ seeds into ``out/plots`` (``sonogym plot --runs out/runs``).
 
 Grid keys: ``num_envs``, ``net``, ``obs_downsample``, ``reward_scale``, ``init_log_std``,
 ``final_log_std``, ``anneal_steps``, ``mean_bound_penalty`` (the task config),
-``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an env option). Ray runs locally unless ``address``
-names a cluster (``ray://host:10001``).
+``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an env option).
+Ray runs locally unless ``address`` names a cluster (``ray://host:10001``).
 """
 
 from __future__ import annotations

@@ -24,6 +24,15 @@ done
 # PPO trained for the safety filter (the filter acts at test time only), ~90 min.
 $S train --task surgery --algo ppo-sf --obs-downsample 2 --steps 130000 --seed 0 \
     --out runs/surg-img-sf-anneal-s0
+# Across a population (issue 19): PPO navigation on the 32 population phantoms (seeds 100-131,
+# apart from the held-out seeds 5-99), ~100 min; tested on them, on held-out phantoms 5-9 and
+# on the real TotalSegmentator subject.
+$S train --task navigation --algo ppo --preset cpu --patients 100-131 --steps 58000 --seed 0 \
+    --out runs/nav-pop32-s0
+$S eval --run runs/nav-pop32-s0 --envs 50
+$S eval --run runs/nav-pop32-s0 --envs 50 --protocol odt-patient --held-out 5
+$S eval --run runs/nav-pop32-s0 --envs 50 --patients tests/data/totalsegmentator_example \
+    --name real-subject
 # Imitation learning: expert datasets, ACT and Diffusion Policy (navigation at 100 x 75).
 $S record --task navigation --preset mb --episodes 200 --envs 16 --out runs/ds-nav-mb
 $S il-train --policy act --data runs/ds-nav-mb --image-size 100x75 --steps 75000 --threads 1 \

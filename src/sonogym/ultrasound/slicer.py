@@ -269,35 +269,38 @@ class Slicer:
             raise ValueError(
                 f"crop_boxes has {len(crop_boxes)} entries for {len(patients)} patients"
             )
-        cts, labs, offs, dims, orgs, sps, seeds = [], [], [], [], [], [], []
-        lims = []  # per patient: (lo, hi) in {P} that images must stay in (+-inf: not cut)
-        off = 0
-        for p, box in zip(patients, crop_boxes, strict=True):
-            keep, lim = _crop_range(p, box)
-            lims.append(lim)
+        ranges = [_crop_range(p, box) for p, box in zip(patients, crop_boxes, strict=True)]
+        keeps = [keep for keep, _ in ranges]
+        lims = [lim for _, lim in ranges]  # (lo, hi) in {P} images must stay in (inf: not cut)
+        dims = [[b - a + 2 for a, b in keep] for keep in keeps]  # padded (x, y, z) sizes
+        sizes = [int(np.prod(d)) for d in dims]
+        offs = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64).tolist()
+        if sum(sizes) >= 2**31:
+            raise ValueError(f"Slicer: {sum(sizes)} voxels in all; at most 2**31 fit one slicer")
+        # One flat buffer per volume type, filled patient by patient in place (no per-patient
+        # copies to concatenate, which held every compact volume twice while building).
+        # Memory order (X, Z, Y): y (anterior, the beam's usual direction) is contiguous, so the
+        # gathers below, which run along depth, touch neighbouring memory.
+        flat_ct = torch.full((sum(sizes),), AIR_HU, dtype=torch.float16)
+        flat_lab = torch.zeros((sum(sizes),), dtype=torch.uint8)
+        orgs, sps, seeds = [], [], []
+        for p, keep, (dx, dy, dz), off, size in zip(
+            patients, keeps, dims, offs, sizes, strict=True
+        ):
             part = tuple(slice(a, b) for a, b in keep)
-            dx, dy, dz = (b - a + 2 for a, b in keep)
-            ct = torch.full((dx, dy, dz), AIR_HU, dtype=torch.float16)
-            ct[1:-1, 1:-1, 1:-1] = p.ct[part].to("cpu")
-            lab = torch.zeros((dx, dy, dz), dtype=torch.uint8)
-            lab[1:-1, 1:-1, 1:-1] = p.labels[part].to("cpu")
-            # Memory order (X, Z, Y): y (anterior, the beam's usual direction) is contiguous, so
-            # the gathers below, which run along depth, touch neighbouring memory.
-            cts.append(ct.permute(0, 2, 1).reshape(-1))
-            labs.append(lab.permute(0, 2, 1).reshape(-1))
-            offs.append(off)
-            off += ct.numel()
-            dims.append([dx, dy, dz])
+            inner = (slice(1, -1), slice(1, -1), slice(1, -1))
+            ct = flat_ct[off : off + size].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z) view
+            ct[inner] = p.ct[part].to("cpu")
+            lab = flat_lab[off : off + size].view(dx, dz, dy).permute(0, 2, 1)
+            lab[inner] = p.labels[part].to("cpu")
             sp = p.spacing
             first = np.array([a for a, _ in keep], dtype=np.float64)
             orgs.append(p.origin + (first - 1) * sp)  # padded voxel 0: one before the first kept
             sps.append(sp)
             seeds.append(speckle_seed(p))
-        if off >= 2**31:
-            raise ValueError(f"Slicer: {off} voxels in all; at most 2**31 fit one slicer")
         dev = self.device
-        self._ct = torch.cat(cts).to(dev)
-        self._lab = torch.cat(labs).to(dev)
+        self._ct = flat_ct.to(dev)
+        self._lab = flat_lab.to(dev)
         dims_t = torch.tensor(dims, dtype=torch.int64)
         self._dmax = (dims_t - 2).to(dev, torch.float32)  # (P, 3) largest lower-corner index
         # strides of (x, y, z) in the (X, Z, Y) memory order

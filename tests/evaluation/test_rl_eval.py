@@ -64,6 +64,8 @@ def test_eval_cli_and_errors(nav_run, tmp_path):
     res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--patients", "7",
                                    "--protocol", "odt-patient"])  # fmt: skip
     assert res.exit_code != 0 and "cannot be combined" in res.output
+    with pytest.raises(ValueError, match="letters, digits"):
+        evaluate_run(nav_run, name="../elsewhere")  # a log name is a file name, not a path
     with pytest.raises(FileNotFoundError, match="config.json"):
         evaluate_run(tmp_path)
     with pytest.raises(ValueError, match="unknown controllers"):

@@ -21,6 +21,7 @@ the out-of-domain protocols), every episode's metrics and trajectory to
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -74,6 +75,8 @@ def evaluate_run(
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
     from sonogym.evaluation.protocols import protocol as get_protocol
 
+    if name is not None and (not re.fullmatch(r"[A-Za-z0-9_.-]+", name) or name in (".", "..")):
+        raise ValueError(f"name {name!r}: use letters, digits, '_', '.' and '-' only")
     trained = load_run(run)
     known = CONTROLLERS + ((UNFILTERED,) if trained.algo == "ppo-sf" else ())
     unknown = sorted(set(controllers) - set(known))

@@ -545,8 +545,6 @@ def eval_(
                 f"{protocol}, which sets its own"
             )
         overrides, protocol = {"patients": parse_patients(patients)}, None
-    if name is not None and not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
-        raise typer.BadParameter(f"--name {name!r}: use letters, digits, '_', '.' and '-' only")
     try:
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,

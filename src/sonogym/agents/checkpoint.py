@@ -113,11 +113,18 @@ def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int |
     model.log_std_max.fill_(ceiling)
 
 
-def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
-    """(cost critic in eval mode, filter threshold, filter mode) of a ``ppo-sf`` run (runs
+def filter_settings(task_config: dict) -> tuple[float, str]:
+    """(threshold, mode) of a ``ppo-sf`` run's safety filter, from its ``task_config`` (runs
     written before the mode existed get today's default, ``SafetyParams.filter_mode``)."""
-    from sonogym.agents.safety_filter import CostCritic
     from sonogym.envs.spec import SafetyParams
+
+    mode = task_config.get("filter_mode", SafetyParams.filter_mode)
+    return float(task_config["cost_threshold"]), mode
+
+
+def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
+    """(cost critic in eval mode, filter threshold, filter mode) of a ``ppo-sf`` run."""
+    from sonogym.agents.safety_filter import CostCritic
 
     policy, cfg = load_policy(run, checkpoint, device)
     if cfg["algo"] != "ppo-sf":
@@ -129,8 +136,7 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
     )
     critic.load_state_dict(read_checkpoint(checkpoint, device)["cost_critic"])
     critic.eval()
-    tc = cfg["task_config"]
-    return critic, float(tc["cost_threshold"]), tc.get("filter_mode", SafetyParams.filter_mode)
+    return critic, *filter_settings(cfg["task_config"])
 
 
 #: Keys every run's ``config.json`` has (what evaluation reads).

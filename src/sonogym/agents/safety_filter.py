@@ -141,6 +141,12 @@ class PPOSafetyFilter(PPO):
 FILTER_MODES = ("zero", "search")
 
 
+def check_filter_mode(mode: str) -> None:
+    """Raise ValueError naming the known modes unless ``mode`` is one of ``FILTER_MODES``."""
+    if mode not in FILTER_MODES:
+        raise ValueError(f"unknown safety filter mode {mode!r}; choose from {list(FILTER_MODES)}")
+
+
 def candidate_actions(actions: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
     """(K, N, A) candidates for the search filter, K = 2 A + 4, the policy's action first:
     the action, it halved and quartered, each component zeroed in turn, each component negated
@@ -174,8 +180,7 @@ def filter_actions(
     motion is predicted to cost 1, i.e. the drill is already outside the safe set, and the
     policy's own action is what brought it back in training; zeroing it there kept drills
     outside for the rest of the episode). No host reads: selection is tensor ops."""
-    if mode not in FILTER_MODES:
-        raise ValueError(f"unknown safety filter mode {mode!r}; choose from {list(FILTER_MODES)}")
+    check_filter_mode(mode)
     with torch.no_grad():
         if mode == "zero":
             q = cost_critic.q_values(observations, actions.unsqueeze(0))[0]

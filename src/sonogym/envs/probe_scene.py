@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from sonogym.envs.scene import ImagingReach, PatientScene
+from sonogym.envs.scene import ARM_TILT_MARGIN, ImagingReach, PatientScene
 from sonogym.geometry import wrap_angle
 from sonogym.ultrasound import ProbeGeometry
 
@@ -66,10 +66,11 @@ class ProbeScene(PatientScene):
         """The scene of a probe task's config (its ``patients``, ``phantom_spacing``,
         ``simulator``, ``learned_nets``, ``robot`` and ``target_vertebra`` fields; with
         ``crop_to_reach``, images slice only what a probe within ``workspace_half_extent``
-        of the target, tilted up to ``tilt_limit`` (+ 0.1 rad for the arm), can image)."""
+        of the target, tilted up to ``tilt_limit`` (+ ``ARM_TILT_MARGIN``), can image)."""
         reach = None
         if cfg.crop_to_reach:
-            reach = ImagingReach(cfg.workspace_half_extent, getattr(cfg, "tilt_limit", 0.0) + 0.1)
+            tilt = getattr(cfg, "tilt_limit", 0.0) + ARM_TILT_MARGIN
+            reach = ImagingReach(cfg.workspace_half_extent, tilt)
         return cls(
             cfg.patients,
             num_envs,

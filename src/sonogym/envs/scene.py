@@ -26,6 +26,8 @@ CT_WINDOW = (-1000.0, 2000.0)
 
 #: m added on every side of a crop box: the reached probe pose may trail the clamped command.
 REACH_MARGIN = 0.015
+#: rad a probe arm may tilt the beam beyond the task's own tilt (tracking, settling).
+ARM_TILT_MARGIN = 0.1
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from sonogym.envs.imaging import DEFAULT_LEARNED_NETS
-from sonogym.envs.scene import ImagingReach, PatientScene
+from sonogym.envs.scene import ARM_TILT_MARGIN, ImagingReach, PatientScene
 from sonogym.geometry import in_frame, matrix_from_axis_angle, normalize
 from sonogym.ultrasound import ProbeGeometry
 
@@ -134,8 +134,8 @@ class SurgeryScene(PatientScene):
             gel_depth,
             learned_precision,
             # the still probe: on the skin probe_offset (+ noise) from the midline, tilted
-            # probe_tilt from the normal (0.1 rad more for the arm's settle)
-            ImagingReach(probe_offset + probe_offset_noise, probe_tilt + 0.1)
+            # probe_tilt from the normal, plus the arm's settle
+            ImagingReach(probe_offset + probe_offset_noise, probe_tilt + ARM_TILT_MARGIN)
             if crop_to_reach
             else None,
         )

@@ -158,8 +158,8 @@ def check_safety_filter(trained: TrainedRun, settings: dict[str, Any] | None) ->
     with ``settings`` (keys ``mode``, ``threshold``; None values: the run's) applied; {} for
     other runs. Raises ValueError for settings a run without a filter cannot take, an unknown
     mode or a threshold outside [0, 1] (Q_c estimates a cost in {0, 1})."""
-    from sonogym.agents.safety_filter import FILTER_MODES
-    from sonogym.envs.spec import SafetyParams
+    from sonogym.agents.checkpoint import filter_settings
+    from sonogym.agents.safety_filter import check_filter_mode
 
     given = {k: v for k, v in (settings or {}).items() if v is not None}
     if trained.algo != "ppo-sf":
@@ -172,15 +172,12 @@ def check_safety_filter(trained: TrainedRun, settings: dict[str, Any] | None) ->
     unknown = sorted(set(given) - {"mode", "threshold"})
     if unknown:
         raise ValueError(f"unknown safety filter settings {unknown}; use mode and threshold")
-    tc = trained.config["task_config"]
+    threshold, mode = filter_settings(trained.config["task_config"])
     out = {
-        "mode": given.get("mode", tc.get("filter_mode", SafetyParams.filter_mode)),
-        "threshold": float(given.get("threshold", tc["cost_threshold"])),
+        "mode": given.get("mode", mode),
+        "threshold": float(given.get("threshold", threshold)),
     }
-    if out["mode"] not in FILTER_MODES:
-        raise ValueError(
-            f"unknown safety filter mode {out['mode']!r}; choose from {list(FILTER_MODES)}"
-        )
+    check_filter_mode(out["mode"])
     if not 0.0 <= out["threshold"] <= 1.0:
         raise ValueError(
             f"safety filter threshold must be in [0, 1] (a cost), got {out['threshold']}"

@@ -153,7 +153,24 @@ def run_config(run: str | Path) -> dict:
     ]
     if missing:
         raise ValueError(f"{Path(run) / 'config.json'}: task_config lacks {missing}")
+    check_obs_version(cfg, Path(run) / "config.json")
     return cfg
+
+
+def check_obs_version(cfg: dict, where: str | Path) -> None:
+    """Refuse a run whose policy read an observation that has since changed meaning
+    (``TaskSpec.obs_versions``; runs from before versions were recorded read version 1)."""
+    from sonogym.envs.registry import get_task
+
+    mode = cfg["task_config"].get("env_kwargs", {}).get("obs_mode")
+    trained, now = int(cfg.get("obs_version", 1)), get_task(cfg["task"]).obs_version(mode)
+    if trained != now:
+        raise ValueError(
+            f"{where}: the policy was trained on version {trained} of the {cfg['task']} "
+            f"observation {mode or '(default)'!r}; this sonogym emits version {now} (see the "
+            "task's docstring). Retrain the run, or evaluate it with the sonogym it was "
+            f"trained with ({cfg.get('versions', {}).get('sonogym', 'unknown')})"
+        )
 
 
 def run_net(cfg: dict) -> str:

@@ -39,6 +39,7 @@ import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
 from sonogym.agents.checkpoint import (
+    check_obs_version,
     latest_readable_checkpoint,
     read_checkpoint,
     set_log_std_ceiling,
@@ -52,7 +53,7 @@ from sonogym.agents.configs import (
     to_jsonable,
 )
 from sonogym.agents.networks import make_models
-from sonogym.envs.registry import make_vec
+from sonogym.envs.registry import get_task, make_vec
 from sonogym.runs import (
     TrainingInterrupted,
     atomic_torch_save,
@@ -145,6 +146,8 @@ def train(
 def load_train_config(out: str | Path) -> TrainConfig:
     """The ``TrainConfig`` a run folder was trained with (its ``config.json``)."""
     d = read_json(Path(out) / "config.json", "`sonogym train` run folder", ("task", "algo"))
+    if "task_config" in d:
+        check_obs_version(d, Path(out) / "config.json")
     try:
         return TrainConfig.from_dict(d)
     except (KeyError, TypeError) as e:
@@ -221,6 +224,7 @@ def run_training(
         "checkpoint_interval": ckpt_interval,
         "write_interval": write_interval,
         "resumed_from": start,
+        "obs_version": get_task(task).obs_version(cfg.rl.env_kwargs.get("obs_mode")),
         "versions": _versions(),
     }
     atomic_write_json(out / "config.json", to_jsonable(resolved))

@@ -220,6 +220,15 @@ class TaskSpec:
     demo: Demo
     training: TrainingDefaults
     dataset: DatasetSpec | None = None
+    # per obs_mode, the version of what the observation means (absent: 1); bumped when it
+    # changes, so a policy trained on an older one is refused instead of silently misread
+    obs_versions: dict[str, int] = field(default_factory=dict)
+
+    def obs_version(self, obs_mode: str | None) -> int:
+        """The version of observation ``obs_mode`` (None: the env config's default mode)."""
+        if obs_mode is None:
+            obs_mode = getattr(self.config_cls(), "obs_mode", None)
+        return self.obs_versions.get(obs_mode, 1)
 
     def metric(self, key: str) -> Metric:
         for m in self.metrics:

@@ -3,6 +3,7 @@ observations are standardised by running statistics that checkpoints keep."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -64,6 +65,18 @@ def test_surgery_state_inputs_reach_the_network_at_order_one(tmp_path):
     assert policy.adapter.update_stats is False  # evaluation does not move the statistics
     policy.act(obs, {})
     assert policy.adapter.standardizer.count.item() == stats["count"].item()
+    # the run records which state it learned from; one trained on the old state (pose in {G},
+    # version 1, or no version recorded) is refused by eval and by resume, not misread
+    cfg_path = run / "config.json"
+    cfg = json.loads(cfg_path.read_text())
+    assert cfg["obs_version"] == 2
+    del cfg["obs_version"]
+    cfg_path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="version 1 of the surgery observation 'state'.*emits "
+                                         "version 2"):  # fmt: skip
+        rl_policy(run, env)
+    with pytest.raises(ValueError, match="Retrain the run"):
+        train("surgery", "ppo", steps=64, out=run, resume=True, progress=False)
 
 
 def test_surgery_exploration_narrows_geometrically_to_its_floor():

@@ -14,11 +14,12 @@ from sonogym.envs.surgery import (
     UNSAFE,
     SurgeryEnv,
     corridor_damping,
+    drill_frame_state,
     surgery_expert,
     surgery_regions,
     surgery_reward,
 )
-from sonogym.geometry import matrix_from_quat
+from sonogym.geometry import axis_angle_from_matrix, matrix_from_axis_angle, matrix_from_quat
 
 FAST = dict(patients=(0,), phantom_spacing=0.002)
 L = 0.05  # m, skin distance l
@@ -180,6 +181,44 @@ def test_no_closed_loop_through_the_unsafe_region_earns_reward():
 
 
 # ----------------------------------------------------------------------------- the env
+
+
+def _spin(angle: float) -> torch.Tensor:
+    return matrix_from_axis_angle(torch.tensor([[0.0, 0.0, angle]], dtype=torch.float64))[0]
+
+
+def test_state_observation_is_the_goal_seen_from_the_drill():
+    # drill axis along z_G, 50 mm before the target, 1 mm / 2 mm off axis, no spin
+    s = torch.tensor([[0.001, 0.002, -0.05, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    assert torch.allclose(drill_frame_state(s), torch.tensor([[-0.001, -0.002, 0.05, 0, 0, 1.0]],
+                                                             dtype=torch.float64))  # fmt: skip
+    # a spin psi of {D} about z_D turns both vectors by -psi about z and changes nothing else
+    tilt = matrix_from_axis_angle(torch.tensor([[0.05, -0.03, 0.0]], dtype=torch.float64))[0]
+    p = torch.tensor([0.003, -0.002, -0.03], dtype=torch.float64)
+    obs = {}
+    for psi in (0.0, 1.0, 3.0):
+        r = tilt @ _spin(psi)
+        obs[psi] = drill_frame_state(torch.cat([p, axis_angle_from_matrix(r[None])[0]])[None])[0]
+        back = _spin(psi)  # turns the spun vectors back
+        assert torch.allclose(back @ obs[psi][:3], obs[0.0][:3], atol=1e-12)
+        assert torch.allclose(back @ obs[psi][3:], obs[0.0][3:], atol=1e-12)
+    # continuous where the rotation vector jumps: spins of pi -+ 1e-4 have rotation vectors
+    # ~2 pi apart, and observations 2e-4 rad of turn apart (their parts off z_D are ~0.06 long)
+    near = [tilt @ _spin(math.pi + d) for d in (-1e-4, 1e-4)]
+    rv = [axis_angle_from_matrix(r[None])[0] for r in near]
+    assert float((rv[0] - rv[1]).norm()) > 6.0
+    o = [drill_frame_state(torch.cat([p, v])[None])[0] for v in rv]
+    assert float((o[0] - o[1]).norm()) < 2e-4 * 0.07
+    # in the env, every step: |goal| = |p|, goal . z_G = -p_z and z_G's z_D component = cos theta
+    env = _env(4, obs_mode="state")
+    obs_t, info = env.reset(seed=3)
+    for _ in range(5):
+        o, st = obs_t.double(), info["state"].double()
+        assert torch.allclose(o[:, :3].norm(dim=-1), st[:, :3].norm(dim=-1), atol=1e-6)
+        assert torch.allclose((o[:, :3] * o[:, 3:]).sum(-1), -st[:, 2], atol=1e-6)
+        theta = env.errors()["rotation_error_deg"].double() * math.pi / 180
+        assert torch.allclose(o[:, 5], theta.cos(), atol=1e-5)
+        obs_t, _, _, _, info = env.step(torch.randn(4, 6, generator=torch.Generator().manual_seed(0)))
 
 
 def test_make_vec_gives_the_native_batched_env():

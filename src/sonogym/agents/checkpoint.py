@@ -88,7 +88,10 @@ def load_policy(
     low = np.asarray(cfg["action_space"]["low"], np.float32)
     high = np.asarray(cfg["action_space"]["high"], np.float32)
     box = gym.spaces.Box(low, high, dtype=np.float32)
-    model = make_models(cfg["task"], layout, box, device, run_net(cfg))["policy"]
+    bounded = bool(cfg["task_config"].get("bounded_mean", False))  # runs before it: False
+    model = make_models(cfg["task"], layout, box, device, run_net(cfg), bounded_mean=bounded)[
+        "policy"
+    ]
     model.load_state_dict(read_checkpoint(checkpoint, device)["policy"])
     set_log_std_ceiling(model, cfg["task_config"], checkpoint_step(checkpoint))
     model.eval()

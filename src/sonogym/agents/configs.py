@@ -55,6 +55,7 @@ class TaskRLConfig:
     anneal_steps: int = 0  # env steps per env over which the log sigma ceiling falls
     init_mean_gain: float = 1.0  # factor on the mean head's initial weights
     mean_bound_penalty: float = 0.0  # weight of the loss on the mean outside the action box
+    bounded_mean: bool = False  # policy mean squashed into the action box (networks)
     standardize_vectors: bool = False  # running standardisation of vector observations
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
@@ -91,6 +92,7 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         anneal_steps=t.anneal_steps,
         init_mean_gain=t.init_mean_gain,
         mean_bound_penalty=t.mean_bound_penalty,
+        bounded_mean=t.bounded_mean,
         standardize_vectors=t.standardize_vectors,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,

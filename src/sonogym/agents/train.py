@@ -319,7 +319,7 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
     layout, space = adapter.layout, adapter.action_space
     models = make_models(
         task, layout, space, device, net, cfg.rl.init_log_std, cfg.rl.init_mean_gain,
-        cfg.rl.mean_bound_penalty,
+        cfg.rl.mean_bound_penalty, cfg.rl.bounded_mean,
     )  # fmt: skip
     if cfg.algo == "ppo-sf":
         from sonogym.agents.safety_filter import CostCritic

@@ -598,6 +598,9 @@ SPEC = TaskSpec(
         final_log_std=math.log(0.005),
         anneal_steps=100_000,
         init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
+        # the policy mean stays inside the action box (networks.squash_into_box): with sigma
+        # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
+        bounded_mean=True,
         # mean_bound_penalty stays 0: at 10 (networks.SharedActorCritic) seed 1 no longer ran
         # its rotation means out of the box, but seed 2 collapsed anyway and seed 0 stalled
         # (docs/results.md, 2026-11-25)

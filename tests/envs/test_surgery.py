@@ -14,7 +14,7 @@ from sonogym.envs.surgery import (
     UNSAFE,
     SurgeryEnv,
     corridor_damping,
-    drill_frame_state,
+    state_observation,
     surgery_expert,
     surgery_regions,
     surgery_reward,
@@ -187,38 +187,36 @@ def _spin(angle: float) -> torch.Tensor:
     return matrix_from_axis_angle(torch.tensor([[0.0, 0.0, angle]], dtype=torch.float64))[0]
 
 
-def test_state_observation_is_the_goal_seen_from_the_drill():
+def test_state_observation_is_position_and_drill_axes_continuous_at_180_degrees():
     # drill axis along z_G, 50 mm before the target, 1 mm / 2 mm off axis, no spin
     s = torch.tensor([[0.001, 0.002, -0.05, 0.0, 0.0, 0.0]], dtype=torch.float64)
-    assert torch.allclose(drill_frame_state(s), torch.tensor([[-0.001, -0.002, 0.05, 0, 0, 1.0]],
-                                                             dtype=torch.float64))  # fmt: skip
-    # a spin psi of {D} about z_D turns both vectors by -psi about z and changes nothing else
+    expected = torch.tensor([[0.001, 0.002, -0.05, 1, 0, 0, 0, 0, 1]], dtype=torch.float64)
+    assert torch.allclose(state_observation(s), expected)
+    # continuous where the rotation vector jumps: spins of pi -+ 1e-4 (with a tilt) have
+    # rotation vectors ~2 pi apart, and observations 2e-4 rad of turn apart
     tilt = matrix_from_axis_angle(torch.tensor([[0.05, -0.03, 0.0]], dtype=torch.float64))[0]
     p = torch.tensor([0.003, -0.002, -0.03], dtype=torch.float64)
-    obs = {}
-    for psi in (0.0, 1.0, 3.0):
-        r = tilt @ _spin(psi)
-        obs[psi] = drill_frame_state(torch.cat([p, axis_angle_from_matrix(r[None])[0]])[None])[0]
-        back = _spin(psi)  # turns the spun vectors back
-        assert torch.allclose(back @ obs[psi][:3], obs[0.0][:3], atol=1e-12)
-        assert torch.allclose(back @ obs[psi][3:], obs[0.0][3:], atol=1e-12)
-    # continuous where the rotation vector jumps: spins of pi -+ 1e-4 have rotation vectors
-    # ~2 pi apart, and observations 2e-4 rad of turn apart (their parts off z_D are ~0.06 long)
     near = [tilt @ _spin(math.pi + d) for d in (-1e-4, 1e-4)]
     rv = [axis_angle_from_matrix(r[None])[0] for r in near]
     assert float((rv[0] - rv[1]).norm()) > 6.0
-    o = [drill_frame_state(torch.cat([p, v])[None])[0] for v in rv]
-    assert float((o[0] - o[1]).norm()) < 2e-4 * 0.07
-    # in the env, every step: |goal| = |p|, goal . z_G = -p_z and z_G's z_D component = cos theta
+    o = [state_observation(torch.cat([p, v])[None])[0] for v in rv]
+    assert float((o[0] - o[1]).norm()) < 2e-4 * 1.01
+    # in the env, every step: the position of info["state"], two orthonormal axes, and
+    # z_D . z_G = cos theta
     env = _env(4, obs_mode="state")
+    assert env.single_observation_space.shape == (9,)
     obs_t, info = env.reset(seed=3)
+    g = torch.Generator().manual_seed(0)
     for _ in range(5):
         o, st = obs_t.double(), info["state"].double()
-        assert torch.allclose(o[:, :3].norm(dim=-1), st[:, :3].norm(dim=-1), atol=1e-6)
-        assert torch.allclose((o[:, :3] * o[:, 3:]).sum(-1), -st[:, 2], atol=1e-6)
+        assert torch.allclose(o[:, :3], st[:, :3])
+        x_d, z_d = o[:, 3:6], o[:, 6:]
+        for v in (x_d.norm(dim=-1), z_d.norm(dim=-1)):
+            assert torch.allclose(v, torch.ones(4, dtype=torch.float64), atol=1e-6)
+        assert torch.allclose((x_d * z_d).sum(-1), torch.zeros(4, dtype=torch.float64), atol=1e-6)
         theta = env.errors()["rotation_error_deg"].double() * math.pi / 180
-        assert torch.allclose(o[:, 5], theta.cos(), atol=1e-5)
-        obs_t, _, _, _, info = env.step(torch.randn(4, 6, generator=torch.Generator().manual_seed(0)))
+        assert torch.allclose(z_d[:, 2], theta.cos(), atol=1e-5)
+        obs_t, _, _, _, info = env.step(torch.randn(4, 6, generator=g))
 
 
 def test_make_vec_gives_the_native_batched_env():

@@ -19,13 +19,14 @@ Probe and drill poses are those the arms reached (forward kinematics after veloc
 3-D volume (elevation E, depth H, lateral W) at 2 x 2 x 10 mm, and ``pose`` (7,) float32, the
 drill tip pose in {U}: position (m) + quaternion (w, x, y, z). ``"ct"``: the image is the CT
 volume windowed from [-1000, 2000] HU to [0, 1]; ``"labels"``: the label volume, uint8.
-``"state"``: the privileged state (6,) seen from the drill, in {D}, the frame the actions act
-in: the goal point (origin of {G}, m) and the trajectory axis z_G (unit vector). It is
-continuous and ignores the drill's spin about its own axis, which the reward and the regions
-do not depend on either; ``info["state"]`` keeps the pose in {G} (position + rotation vector).
-(A first version observed ``info["state"]`` itself. Its rotation vector includes the spin,
-which starts near 90 deg and drifts freely, and it jumps where its angle reaches 180 deg: one
-PPO seed of three drove the spin there and lost control of the tilt, docs/results.md.)
+``"state"``: the privileged state (9,): the tip position in {G} (m) and the drill's axes x_D
+and z_D in {G} (unit vectors, the first and third columns of R_GD), a continuous encoding of
+the pose; ``info["state"]`` keeps position + rotation vector. (A first version observed
+``info["state"]`` itself. Its rotation vector jumps where its angle reaches 180 deg, and the
+drill's free spin about its axis starts near 90 deg and drifts: one PPO seed of three drove it
+there and lost control of the tilt, docs/results.md. The goal and z_G seen from the drill, a
+spin-free 6-D alternative, trained worse: the corridor's lateral offset then mixes with the
+tilt times the distance.)
 The probe is still and the drill is not imaged, so the volume changes only at resets.
 
 **Actions.** (dp, dw) in {D}, unitless, (6,): scaled by ``action_scale`` (0.1 m, 0.1 m, 0.1 m,
@@ -260,14 +261,12 @@ def surgery_reward(
     return phi_next - phi - unsafe_penalty * cost, cost, region_next
 
 
-def drill_frame_state(state: torch.Tensor) -> torch.Tensor:
-    """(N, 6) tip states in {G} (position m + rotation vector of {D} in {G}, rad) -> (N, 6) the
-    observation ``obs_mode="state"``: the goal point -R^T p (m) and the axis z_G = R^T e_z,
-    both in {D}. Continuous in the pose and unchanged by a spin of {D} about z_D up to the
-    same rotation of both vectors, like the actions (which are in {D})."""
-    r_dg = matrix_from_axis_angle(state[:, 3:]).transpose(-1, -2)
-    goal = -(r_dg @ state[:, :3].unsqueeze(-1)).squeeze(-1)
-    return torch.cat([goal, r_dg[..., :, 2]], -1)
+def state_observation(state: torch.Tensor) -> torch.Tensor:
+    """(N, 6) tip states in {G} (position m + rotation vector of {D} in {G}, rad) -> (N, 9)
+    the observation ``obs_mode="state"``: the position, then x_D and z_D in {G} (columns 0 and
+    2 of R_GD), continuous in the pose where the rotation vector is not (at 180 deg)."""
+    r_gd = matrix_from_axis_angle(state[:, 3:])
+    return torch.cat([state[:, :3], r_gd[..., :, 0], r_gd[..., :, 2]], -1)
 
 
 def corridor_damping(delta: torch.Tensor, in_corridor: torch.Tensor, factor: float):
@@ -382,7 +381,7 @@ class SurgeryEnv(TorchVectorEnv):
             dtype=np.float32,
         )
         if cfg.obs_mode == "state":
-            obs_space = spaces.Box(-np.inf, np.inf, (6,), np.float32)
+            obs_space = spaces.Box(-np.inf, np.inf, (9,), np.float32)
         elif cfg.obs_mode == "labels":
             obs_space = spaces.Dict(
                 {"image": spaces.Box(0, 255, img_shape, np.uint8), "pose": pose}
@@ -487,7 +486,7 @@ class SurgeryEnv(TorchVectorEnv):
     def _get_observations(self, env_ids: torch.Tensor | None):
         sl = slice(None) if env_ids is None else env_ids
         if self.cfg.obs_mode == "state":
-            return drill_frame_state(self._state[sl])
+            return state_observation(self._state[sl])
         p, r_ud = self.scene.tip_in_probe(sl)
         pose = torch.cat([p, quat_from_matrix(r_ud)], -1).float()
         return {"image": self._image[sl].clone(), "pose": pose}
@@ -579,7 +578,7 @@ SPEC = TaskSpec(
     ),
     track=Track(("x", "y", "z"), ("mm", "mm", "mm"), drill_track, plane=("x", "z"), axis_line=True),
     demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
-    # "state" 2: the goal seen from the drill (drill_frame_state); 1 was the pose in {G}
+    # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
     training=TrainingDefaults(
         algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),

@@ -35,7 +35,11 @@ The probe is still and the drill is not imaged, so the volume changes only at re
 translation (x_D, y_D) and all three rotation components are then multiplied by
 ``corridor_damping`` (0.2, the reference's safety shaping; 1 turns it off), so a policy in the
 corridor moves 5x slower sideways than along the drill axis. The drill-tip target is the
-reached tip pose composed with the body-frame increment: T_target = T_tip (dp, exp(dw)); the
+reached tip pose composed with the body-frame increment: T_target = T_tip (dp, exp(dw)),
+its position then kept within ``workspace_radius`` (0.3 m) of {G}'s origin, or within the tip's
+current distance where a start lies further out (a start is never pulled in). (The reference
+zeroes every action 0.5 m before the corridor, which freezes the drill there; without any bound,
+PPO's stochastic drills wandered up to 0.7 m from the target in collapsing runs.) The
 KUKA takes one velocity-limited IK step toward it, so a command faster than the joints allow
 leaves a tracking error (``info["tracking_error"]``).
 
@@ -168,6 +172,7 @@ class SurgeryConfig:
     w6: float = 300.0  # reward per m of progress toward {G} in C_drill (paper)
     unsafe_penalty: float = 0.1  # reward lost per step that ends in the unsafe region
     corridor_damping: float = 0.2  # factor on lateral + rotational actions in C_drill; 1: off
+    workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
         if self.obs_mode not in OBS_MODES:
@@ -186,6 +191,8 @@ class SurgeryConfig:
             raise ValueError("skin_distance must be > 0 and start_height >= 0 (metres)")
         if not 0.0 < self.corridor_damping <= 1.0:
             raise ValueError(f"corridor_damping must be in (0, 1], got {self.corridor_damping}")
+        if not self.workspace_radius > 0:
+            raise ValueError(f"workspace_radius must be > 0 (m), got {self.workspace_radius}")
         if self.unsafe_penalty < 0:
             raise ValueError(f"unsafe_penalty must be >= 0, got {self.unsafe_penalty}")
         if isinstance(self.patients, int | str):
@@ -259,6 +266,15 @@ def surgery_reward(
     phi_next = surgery_potential(p_next, theta_next, region_next, l, w4, w5, w6)
     cost = (region_next == UNSAFE).to(p_next.dtype)
     return phi_next - phi - unsafe_penalty * cost, cost, region_next
+
+
+def clamp_to_ball(points: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor | float):
+    """(N, 3) points moved radially onto the ball of ``radius`` (m, scalar or (N,)) around
+    ``centre`` (N, 3) where they lie outside it; points inside are unchanged."""
+    offset = points - centre
+    norm = offset.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    radius = torch.as_tensor(radius, dtype=points.dtype, device=points.device).reshape(-1, 1)
+    return centre + offset * (radius / norm).clamp(max=1.0)
 
 
 def state_observation(state: torch.Tensor) -> torch.Tensor:
@@ -453,6 +469,10 @@ class SurgeryEnv(TorchVectorEnv):
         if cfg.corridor_damping != 1.0:
             delta = corridor_damping(delta, self._region == DRILL, cfg.corridor_damping)
         target_pos = sc.tip_pos + (sc.tip_rot @ delta[:, :3].unsqueeze(-1)).squeeze(-1)
+        # the workspace: no command ends further from {G} than workspace_radius, or than the
+        # tip already is (a start outside is not pulled in)
+        reach = (sc.tip_pos - sc.goal_pos).norm(dim=-1).clamp_min(cfg.workspace_radius)
+        target_pos = clamp_to_ball(target_pos, sc.goal_pos, reach)
         target_rot = sc.tip_rot @ matrix_from_axis_angle(delta[:, 3:])
         res = sc.step_drill(target_pos, target_rot)
         self._tracking_error = (target_pos - res.pos).norm(dim=-1)

@@ -13,6 +13,7 @@ from sonogym.envs.surgery import (
     FREE,
     UNSAFE,
     SurgeryEnv,
+    clamp_to_ball,
     corridor_damping,
     state_observation,
     surgery_expert,
@@ -357,6 +358,27 @@ def test_reward_and_cost_on_recorded_transitions():
     assert np.concatenate(costs).sum() >= 0
 
 
+def test_workspace_ball_stops_the_drill_wandering_off():
+    c = torch.zeros(3, 3)
+    pts = torch.tensor([[0.1, 0.0, 0.0], [0.0, 0.0, -0.5], [0.3, 0.4, 0.0]])
+    out = clamp_to_ball(pts, c, torch.tensor([0.2, 0.2, 0.6]))
+    torch.testing.assert_close(out, torch.tensor([[0.1, 0, 0], [0, 0, -0.2], [0.3, 0.4, 0]]))
+    # pulling the drill straight back along its axis, as far as the arm allows, for 80 steps
+    back = torch.zeros(4, 6)
+    back[:, 2] = -0.3
+    dist = {}
+    for radius in (0.2, 10.0):
+        env = _env(4, obs_mode="state", workspace_radius=radius)
+        _, info = env.reset(seed=0)
+        start = info["state"][:, :3].norm(dim=-1)
+        for _ in range(80):
+            _, _, _, _, info = env.step(back)
+        dist[radius] = info["state"][:, :3].norm(dim=-1)
+    # within the ball (or the start's distance, for starts beyond it), up to the IK's lag
+    assert bool((dist[0.2] <= torch.maximum(start, torch.tensor(0.2)) + 2e-3).all())
+    assert bool((dist[10.0] > 0.3).all())  # unbounded, the same pull goes much further
+
+
 def test_over_fast_drill_command_leaves_a_tracking_error():
     env = _env(2, obs_mode="state", joint_noise=(0.0,) * 7)  # both envs at the nominal start
     env.reset(seed=0)
@@ -441,6 +463,8 @@ def test_bad_options_raise():
         _env(1, joint_noise=(0.1, 0.1))
     with pytest.raises(TypeError, match="valid options"):
         _env(1, sid="left")
+    with pytest.raises(ValueError, match="workspace_radius must be > 0"):
+        _env(1, workspace_radius=0.0)
     env = _env(1, obs_mode="state")
     env.reset(seed=0)
     with pytest.raises(ValueError, match="shape"):

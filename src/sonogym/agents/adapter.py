@@ -146,6 +146,8 @@ class SkrlEnvAdapter:
         seed: seed of the first reset.
         standardize_vectors: standardise the 1-D entries with running statistics
             (``standardizer``), updated by ``step`` while ``update_stats`` is true.
+        stagger_episodes: after the first reset, shorten each env's first episode to a random
+            length (``TorchVectorEnv.stagger_episodes``) so that envs end at different steps.
     """
 
     def __init__(
@@ -155,6 +157,7 @@ class SkrlEnvAdapter:
         obs_scales: dict[str, float] | None = None,
         seed: int | None = None,
         standardize_vectors: bool = False,
+        stagger_episodes: bool = False,
     ) -> None:
         if int(obs_downsample) != obs_downsample or obs_downsample < 1:
             raise ValueError(f"obs_downsample must be an integer >= 1, got {obs_downsample}")
@@ -170,6 +173,7 @@ class SkrlEnvAdapter:
         self.seed = seed
         self._observations: torch.Tensor | None = None
         self._info: dict[str, Any] = {}
+        self.stagger_episodes = bool(stagger_episodes)
         self.standardizer: RunningStandardizer | None = None
         self.update_stats = False
         if standardize_vectors:
@@ -216,6 +220,8 @@ class SkrlEnvAdapter:
         """Reset every env on the first call; later calls return the latest observations."""
         if self._observations is None:
             obs, self._info = self._env.reset(seed=self.seed)
+            if self.stagger_episodes:
+                self._env.stagger_episodes()
             self._observations = self.flatten(obs, update=self.update_stats)
         return self._observations, self._info
 

@@ -56,6 +56,7 @@ class TaskRLConfig:
     init_mean_gain: float = 1.0  # factor on the mean head's initial weights
     mean_bound_penalty: float = 0.0  # weight of the loss on the mean outside the action box
     bounded_mean: bool = False  # policy mean squashed into the action box (networks)
+    stagger_episodes: bool = False  # first episodes of a run end at random steps (adapter)
     standardize_vectors: bool = False  # running standardisation of vector observations
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
@@ -93,6 +94,7 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         init_mean_gain=t.init_mean_gain,
         mean_bound_penalty=t.mean_bound_penalty,
         bounded_mean=t.bounded_mean,
+        stagger_episodes=t.stagger_episodes,
         standardize_vectors=t.standardize_vectors,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,

@@ -199,6 +199,7 @@ def run_training(
     adapter = SkrlEnvAdapter(
         env, cfg.rl.obs_downsample, cfg.rl.obs_scales, seed=cfg.seed + start,
         standardize_vectors=cfg.rl.standardize_vectors,
+        stagger_episodes=cfg.rl.stagger_episodes,
     )  # fmt: skip
     adapter.update_stats = True
     models = _models(cfg, adapter)

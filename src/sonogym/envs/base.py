@@ -60,6 +60,8 @@ class TorchVectorEnv(VectorEnv):
         self.episode_length = int(episode_length)
         self.render_mode = "rgb_array"
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        # steps after which each env's current episode is truncated (stagger_episodes shortens it)
+        self.time_limit = torch.full_like(self.episode_length_buf, self.episode_length)
         self.episode_return = torch.zeros(self.num_envs, dtype=torch.float32, device=self.device)
         self._gen = torch.Generator(device="cpu")
         self._gen.manual_seed(0)
@@ -111,7 +113,7 @@ class TorchVectorEnv(VectorEnv):
         reward = self._get_rewards().to(torch.float32)
         self.episode_return += reward
         terminated = self._get_terminated()
-        truncated = (self.episode_length_buf >= self.episode_length) & ~terminated
+        truncated = (self.episode_length_buf >= self.time_limit) & ~terminated
         info = self._get_info()
         obs = self._get_observations(None)
         done = terminated | truncated
@@ -127,8 +129,22 @@ class TorchVectorEnv(VectorEnv):
             _scatter(obs, ids, self._get_observations(ids))
         return obs, reward, terminated, truncated, info
 
+    def stagger_episodes(self) -> None:
+        """Truncate each env's current episode after a uniform draw of 1 ... episode_length
+        steps (the env's seeded generator); later episodes have the full length, so from then
+        on envs end at different steps. For training: with every env in the same phase, each
+        short rollout shows the learner one phase of the task only (all approach, or all
+        inside the corridor), and an update fitted to one phase can wreck the others, which
+        no sample constrains (IsaacLab randomises initial episode lengths the same way).
+        Call after ``reset()``; evaluation keeps whole episodes."""
+        if self._needs_reset:
+            raise RuntimeError("call reset() before stagger_episodes()")
+        draw = (self.rand(self.num_envs) * self.episode_length).long() + 1
+        self.time_limit.copy_(draw.clamp(max=self.episode_length).to(self.device))
+
     def _reset_envs(self, ids: torch.Tensor) -> None:
         self.episode_length_buf[ids] = 0
+        self.time_limit[ids] = self.episode_length
         self.episode_return[ids] = 0
         self._reset_idx(ids)
 

@@ -195,6 +195,7 @@ class TrainingDefaults:
     init_mean_gain: float = 1.0  # factor on the mean head's initial weights (0.01: acts ~0)
     mean_bound_penalty: float = 0.0  # weight of the loss on the policy mean outside the box
     bounded_mean: bool = False  # policy mean squashed into the action box (tanh), see networks
+    stagger_episodes: bool = False  # training: first episodes end at random steps (base env)
     ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
     standardize_vectors: bool = False  # running standardisation of vector observations
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)

@@ -620,6 +620,8 @@ SPEC = TaskSpec(
         # the policy mean stays inside the action box (networks.squash_into_box): with sigma
         # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
         bounded_mean=True,
+        # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
+        stagger_episodes=True,
         # mean_bound_penalty stays 0: at 10 (networks.SharedActorCritic) seed 1 no longer ran
         # its rotation means out of the box, but seed 2 collapsed anyway and seed 0 stalled
         # (docs/results.md, 2026-11-25)

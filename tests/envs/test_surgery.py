@@ -454,6 +454,33 @@ def test_autoreset_and_partial_reset():
     assert env.episode_length_buf.tolist() == [0, 1]
 
 
+def test_staggered_first_episodes_end_at_random_steps_then_run_whole():
+    n, length = 16, 12
+    ends = {}
+    for stagger in (True, False):
+        env = _env(n, obs_mode="state", episode_length=length)
+        with pytest.raises(RuntimeError, match="reset"):
+            env.stagger_episodes()
+        env.reset(seed=4)
+        if stagger:
+            env.stagger_episodes()
+        first = torch.zeros(n, dtype=torch.long)
+        second = torch.zeros(n, dtype=torch.long)
+        for t in range(1, 2 * length + 1):
+            _, _, _, trunc, info = env.step(torch.zeros(n, 6))
+            seen = first > 0
+            second[seen & trunc & (second == 0)] = t
+            first[~seen & trunc] = t
+            if "final_info" in info:  # metrics of every ended episode, over its own steps
+                assert bool((info["final_info"]["safe_ratio"] <= 1.0).all())
+        ends[stagger] = (first, second)
+    first, second = ends[True]
+    assert bool((first >= 1).all() and (first <= length).all())
+    assert len(set(first.tolist())) > 4  # spread out, not in lockstep
+    assert torch.equal(second - first, torch.full((n,), length))  # then whole episodes
+    assert torch.equal(ends[False][0], torch.full((n,), length))  # unstaggered: all at once
+
+
 def test_bad_options_raise():
     with pytest.raises(ValueError, match="side"):
         _env(1, side="middle")

@@ -97,3 +97,27 @@ def test_training_adapter_staggers_the_first_episodes_where_the_task_asks():
         limits = env.time_limit.tolist()
         assert (len(set(limits)) > 1) is stagger
         assert max(limits) <= env.episode_length
+
+
+def test_training_run_keeps_the_stagger_after_its_cost_estimate(tmp_path, monkeypatch):
+    """The announced run measures a few steps first, then resets: the stagger must survive."""
+    from sonogym.agents.train import train
+    from sonogym.envs.base import TorchVectorEnv
+
+    first_ends: list[int] = []
+    step = TorchVectorEnv.step
+
+    def recording_step(self, actions):
+        out = step(self, actions)
+        if bool(out[3].any()):
+            first_ends.append(int(out[3].sum()))
+        return out
+
+    monkeypatch.setattr(TorchVectorEnv, "step", recording_step)
+    lines: list[str] = []
+    train("surgery", "ppo", envs=8, steps=16, out=tmp_path / "run", patients=(0,),
+          progress=False, log=lines.append,
+          env_kwargs=dict(phantom_spacing=0.002, obs_mode="state", episode_length=16))  # fmt: skip
+    assert any("estimated" in s for s in lines)  # the estimate ran
+    # staggered: the 8 first episodes end over several steps, not all 8 at step 16
+    assert len(first_ends) > 2 and max(first_ends) < 8

@@ -219,11 +219,16 @@ class SkrlEnvAdapter:
     def reset(self) -> tuple[torch.Tensor, dict[str, Any]]:
         """Reset every env on the first call; later calls return the latest observations."""
         if self._observations is None:
-            obs, self._info = self._env.reset(seed=self.seed)
-            if self.stagger_episodes:
-                self._env.stagger_episodes()
-            self._observations = self.flatten(obs, update=self.update_stats)
+            self.restart(update_stats=self.update_stats)
         return self._observations, self._info
+
+    def restart(self, update_stats: bool = False) -> None:
+        """Reset every env with the adapter's seed (the run's first state again), staggering
+        the episodes where asked; ``update_stats``: add these observations to the statistics."""
+        obs, self._info = self._env.reset(seed=self.seed)
+        if self.stagger_episodes:
+            self._env.stagger_episodes()
+        self._observations = self.flatten(obs, update=update_stats)
 
     def step(
         self, actions: torch.Tensor

@@ -393,7 +393,7 @@ def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]
         (mean.sum() + value.sum()).backward()
         model.zero_grad(set_to_none=True)
         update_s = (time.perf_counter() - t0) * getattr(p, "learning_epochs", 1) * p.mini_batches
-    adapter.unwrapped.reset(seed=adapter.seed)  # the run starts as if unmeasured
+    adapter.restart()  # the run starts as if unmeasured (staggered again where asked)
     return step_s, update_s
 
 

@@ -64,11 +64,12 @@ leaving the corridor gives back everything the insertion earned, and each unsafe
 ``unsafe_penalty`` (1.0) more. (It was 0.1 until 2026-11-25: at 0.1, PPO seeds drifted into
 pushing through the target and beyond, 600 unsafe steps costing only 60; docs/results.md.)
 Being paid for the current state (not the deepest point reached, as a guard on the paper's
-formula did before) means backing out of the corridor gives back what going in earned. Consequences, tested: no closed path earns reward (a
-potential; a loop through the unsafe region loses 1.0 per unsafe step), pushing along the
-drill axis or leaving the corridor and staying out earns less than standing still, unit-noise
-dithering earns less than standing still, reaching depth and backing out earns less than
-staying, and the expert's return is the largest of these. The C_free side of the corridor's
+formula did before) means backing out of the corridor gives back what going in earned.
+Consequences, tested: no closed path earns reward (a potential; a loop through the unsafe
+region loses 1.0 per unsafe step), pushing along the drill axis or leaving the corridor and
+staying out earns less than standing still, unit-noise dithering earns less than standing
+still, reaching depth and backing out earns less than staying, and the expert's return is the
+largest of these. The C_free side of the corridor's
 entrance has no step: a first version that valued unsafe states w6 l = 15 lower made every
 misaligned crossing of p_l's plane a cliff, and PPO (sigma 0.05, 5 mm noise against an 11 mm
 corridor) learned to hover above p_l (return 3.7, insertion error 55-60 mm, 0.5 M env steps).

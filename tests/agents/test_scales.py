@@ -138,3 +138,28 @@ def test_training_samples_under_the_ceiling_and_eval_restores_it(tmp_path):
     bad = dataclasses.replace(cfg.rl, final_log_std=math.log(0.1))
     with pytest.raises(ValueError, match="final_log_std .* above init_log_std"):
         dataclasses.replace(cfg, rl=bad)
+
+
+def test_observation_statistics_freeze_after_standardize_steps(tmp_path):
+    import dataclasses
+
+    from sonogym.agents.configs import resolve_train_config
+    from sonogym.agents.train import run_training
+
+    torch.set_num_threads(1)
+    assert task_config("surgery").standardize_steps == 30_000
+    base = resolve_train_config(
+        "surgery", "ppo", preset="cpu", envs=4, steps=32, checkpoint_interval=16,
+        env_kwargs=dict(patients=(0,), phantom_spacing=0.002, obs_mode="state",
+                        episode_length=16),
+    )  # fmt: skip
+    cfg = dataclasses.replace(base, rl=dataclasses.replace(base.rl, standardize_steps=16))
+    run = tmp_path / "frozen"
+    run_training(cfg, run, progress=False, log=lambda _: None)
+    at16 = read_checkpoint(run / "checkpoints" / "agent_16.pt")["obs_standardizer"]
+    at32 = read_checkpoint(run / "checkpoints" / "agent_32.pt")["obs_standardizer"]
+    assert at16["count"] == 16 * 4 + 4  # the first reset's observations and 16 steps
+    for k in ("count", "mean", "var"):  # then frozen
+        assert torch.equal(at16[k], at32[k])
+    with pytest.raises(ValueError, match="standardize_steps must be an integer >= 0"):
+        dataclasses.replace(base, rl=dataclasses.replace(base.rl, standardize_steps=-1))

@@ -58,6 +58,7 @@ class TaskRLConfig:
     bounded_mean: bool = False  # policy mean squashed into the action box (networks)
     stagger_episodes: bool = False  # first episodes of a run end at random steps (adapter)
     standardize_vectors: bool = False  # running standardisation of vector observations
+    standardize_steps: int = 0  # env steps per env its statistics learn for (0: all)
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
     cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (cost in [0, 1])
@@ -96,6 +97,7 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         bounded_mean=t.bounded_mean,
         stagger_episodes=t.stagger_episodes,
         standardize_vectors=t.standardize_vectors,
+        standardize_steps=t.standardize_steps,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,
         filter_mode=safety.filter_mode,
@@ -137,6 +139,9 @@ class TrainConfig:
         final, anneal = self.rl.final_log_std, self.rl.anneal_steps
         if isinstance(anneal, bool) or not isinstance(anneal, int) or anneal < 0:
             raise ValueError(f"anneal_steps must be an integer >= 0, got {anneal!r}")
+        frozen = self.rl.standardize_steps
+        if isinstance(frozen, bool) or not isinstance(frozen, int) or frozen < 0:
+            raise ValueError(f"standardize_steps must be an integer >= 0, got {frozen!r}")
         if final is not None and final > self.rl.init_log_std:
             raise ValueError(
                 f"final_log_std {final} is above init_log_std {self.rl.init_log_std}: the "

@@ -201,7 +201,7 @@ def run_training(
         standardize_vectors=cfg.rl.standardize_vectors,
         stagger_episodes=cfg.rl.stagger_episodes,
     )  # fmt: skip
-    adapter.update_stats = True
+    adapter.update_stats = statistics_update(cfg.rl, start)
     models = _models(cfg, adapter)
     ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(
@@ -243,6 +243,7 @@ def run_training(
     try:
         for t in range(start, steps):
             set_log_std_ceiling(models["policy"], task_cfg, t)
+            adapter.update_stats = statistics_update(cfg.rl, t)
             agent.pre_interaction(timestep=t, timesteps=steps)
             with torch.no_grad():
                 actions, _ = agent.act(obs, None, timestep=t, timesteps=steps)
@@ -395,6 +396,18 @@ def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]
         update_s = (time.perf_counter() - t0) * getattr(p, "learning_epochs", 1) * p.mini_batches
     adapter.restart()  # the run starts as if unmeasured (staggered again where asked)
     return step_s, update_s
+
+
+def statistics_update(rl: TaskRLConfig, step: int) -> bool:
+    """Whether the observation statistics still learn at env step ``step`` (per env): always
+    where ``standardize_steps`` is 0, else for its first steps only.
+
+    Why freeze them: they follow the policy's state distribution, and a surgery state run
+    that had learned the task collapsed at 68 k steps after its statistics had moved the
+    target's standardised depth by 1.2, 0.6 and 0.25 std per 12 k steps while its KL-adaptive
+    learning rate, shrinking with sigma, sat at 1e-6: the policy could no longer follow its own
+    inputs (docs/results.md)."""
+    return rl.standardize_steps == 0 or step < rl.standardize_steps
 
 
 def _track_episode_metrics(agent, info: dict[str, Any]) -> None:

@@ -628,6 +628,9 @@ SPEC = TaskSpec(
         # its rotation means out of the box, but seed 2 collapsed anyway and seed 0 stalled
         # (docs/results.md, 2026-11-25)
         standardize_vectors=True,  # poses in metres: mm differences at order 1
+        # ... with statistics frozen after 30 k steps: drifting statistics under a learning
+        # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
+        standardize_steps=30_000,
         # measured on 2 CPU cores (obs_mode="state", 64 envs): the paper's table (16 rollouts,
         # 32 mini-batches of 32, 3 epochs, lr 1e-4) had reached only p_l after 0.33 M env steps
         ppo_cpu=PPOParams(

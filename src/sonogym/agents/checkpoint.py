@@ -76,6 +76,7 @@ def load_policy(
     """
     run = Path(run)
     cfg = run_config(run)
+    check_obs_version(cfg, run / "config.json")  # reading its logs (report) needs no check
     if checkpoint is None:
         found = latest_readable_checkpoint(run)
         if found is None:
@@ -156,7 +157,6 @@ def run_config(run: str | Path) -> dict:
     ]
     if missing:
         raise ValueError(f"{Path(run) / 'config.json'}: task_config lacks {missing}")
-    check_obs_version(cfg, Path(run) / "config.json")
     return cfg
 
 

@@ -72,6 +72,8 @@ $S eval --run runs/il-nav-dp --trials 100 --envs 50
 $S report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 \
     --out docs/results/navigation
 $S report --task reconstruction --runs runs/recon-ppo-small-s0 --out docs/results/reconstruction
+# (Table 1 in docs/results.md still pools the state version-1 runs, runs/surg-state-anneal-s*,
+# trained and evaluated with the code of 2026-11-25's second session; this regenerates it.)
 $S report --task surgery --runs runs/surg-state-v3-s0 runs/surg-state-v3-s1 \
     runs/surg-state-v3-s2 runs/surg-img-sf-anneal-s0 runs/il-surg-act --out docs/results/surgery
 $S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/results/navigation-sweep \

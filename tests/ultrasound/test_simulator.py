@@ -126,4 +126,4 @@ def test_memory_is_small(slicer):
     sim = ModelBasedSimulator("physical")
     sim.simulate(slicer(*random_poses(4, seed=5)))
     assert sim.nbytes < 40e6
-    assert slicer.nbytes < 3.5 * slicer._lab.numel() + 40e6
+    assert slicer.nbytes < 3.5 * slicer.num_voxels + 40e6

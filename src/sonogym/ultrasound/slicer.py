@@ -42,6 +42,7 @@ import torch
 
 from sonogym.anatomy.patient import Patient
 from sonogym.checks import expect_all
+from sonogym.ultrasound._packed_labels import BLOCK, PALETTE, gather_labels, pack_labels
 from sonogym.ultrasound._workspace import Workspace
 from sonogym.ultrasound.probe import ProbeGeometry
 
@@ -189,6 +190,16 @@ def _crop_range(patient: Patient, box) -> tuple[list[tuple[int, int]], np.ndarra
     return keep, lim
 
 
+def _label_run(patient: Patient, keep, dims, span: int) -> torch.Tensor:
+    """A patient's kept labels as one flat uint8 run of ``span`` voxels in the slicer's memory
+    order (X, Z, Y), with the one-voxel air border and zeros after the padded box."""
+    dx, dy, dz = dims
+    run = torch.zeros(span, dtype=torch.uint8)
+    box = run[: dx * dy * dz].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z) view
+    box[1:-1, 1:-1, 1:-1] = patient.labels[tuple(slice(a, b) for a, b in keep)].to("cpu")
+    return run
+
+
 def upsample_linear(src: torch.Tensor, dim: int, k: int, out: torch.Tensor) -> torch.Tensor:
     """Linear upsampling by an integer factor k along ``dim`` into ``out`` (size n * k there).
 
@@ -233,10 +244,14 @@ class Slicer:
             in cache); default 2**17 on CPU, everything at once on CUDA.
         crop_boxes: per patient, None (keep the whole volume) or (lo, hi), two (3,) corners in
             {P} (m) of the region to keep; see the module docstring.
+        packed_labels: hold labels at 4 bits per voxel with a palette per block of 512 voxels
+            (``sonogym.ultrasound._packed_labels``; exact, falls back to bytes by itself where a
+            block holds more than 16 labels); False keeps one byte per voxel.
 
     Memory: a padded copy of every patient, CT as float16 (HU to 0.5 HU below 1024 HU, 1 HU
-    to 2048, 2 HU above) and labels as uint8: 3 bytes per voxel, plus reusable scratch
-    buffers (about 70 bytes per sample of one chunk: 9 MB on CPU).
+    to 2048, 2 HU above) and labels packed (about 0.53 bytes per voxel, 1 if unpacked):
+    2.53 bytes per voxel, plus reusable scratch buffers (about 80 bytes per sample of one
+    chunk: 10 MB on CPU).
     """
 
     def __init__(
@@ -247,6 +262,7 @@ class Slicer:
         upsample: bool = True,
         chunk_samples: int | None = None,
         crop_boxes: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None,
+        packed_labels: bool = True,
     ) -> None:
         if isinstance(patients, Patient):
             patients = [patients]
@@ -274,33 +290,47 @@ class Slicer:
         lims = [lim for _, lim in ranges]  # (lo, hi) in {P} images must stay in (inf: not cut)
         dims = [[b - a + 2 for a, b in keep] for keep in keeps]  # padded (x, y, z) sizes
         sizes = [int(np.prod(d)) for d in dims]
-        offs = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64).tolist()
-        if sum(sizes) >= 2**31:
-            raise ValueError(f"Slicer: {sum(sizes)} voxels in all; at most 2**31 fit one slicer")
+        spans = [-(-size // BLOCK) * BLOCK for size in sizes]  # each patient starts a block
+        offs = np.concatenate([[0], np.cumsum(spans)[:-1]]).astype(np.int64).tolist()
+        total = sum(spans)
+        if total >= 2**31:
+            raise ValueError(f"Slicer: {total} voxels in all; at most 2**31 fit one slicer")
         # One flat buffer per volume type, filled patient by patient in place (no per-patient
         # copies to concatenate, which held every compact volume twice while building).
         # Memory order (X, Z, Y): y (anterior, the beam's usual direction) is contiguous, so the
         # gathers below, which run along depth, touch neighbouring memory.
-        flat_ct = torch.full((sum(sizes),), AIR_HU, dtype=torch.float16)
-        flat_lab = torch.zeros((sum(sizes),), dtype=torch.uint8)
+        flat_ct = torch.full((total,), AIR_HU, dtype=torch.float16)
         orgs, sps, seeds = [], [], []
-        for p, keep, (dx, dy, dz), off, size in zip(
-            patients, keeps, dims, offs, sizes, strict=True
-        ):
-            part = tuple(slice(a, b) for a, b in keep)
-            inner = (slice(1, -1), slice(1, -1), slice(1, -1))
-            ct = flat_ct[off : off + size].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z) view
-            ct[inner] = p.ct[part].to("cpu")
-            lab = flat_lab[off : off + size].view(dx, dz, dy).permute(0, 2, 1)
-            lab[inner] = p.labels[part].to("cpu")
+        for p, keep, (dx, dy, dz), off in zip(patients, keeps, dims, offs, strict=True):
+            ct = flat_ct[off : off + dx * dy * dz].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z)
+            ct[1:-1, 1:-1, 1:-1] = p.ct[tuple(slice(a, b) for a, b in keep)].to("cpu")
             sp = p.spacing
             first = np.array([a for a, _ in keep], dtype=np.float64)
             orgs.append(p.origin + (first - 1) * sp)  # padded voxel 0: one before the first kept
             sps.append(sp)
             seeds.append(speckle_seed(p))
+        runs = list(zip(patients, keeps, dims, offs, spans, strict=True))
+        self.labels_packed = bool(packed_labels)
+        if self.labels_packed:
+            nibbles = torch.zeros(total // 2, dtype=torch.uint8)
+            palette = torch.zeros(total // BLOCK * PALETTE, dtype=torch.uint8)
+            for p, keep, dim, off, span in runs:
+                packed = pack_labels(_label_run(p, keep, dim, span))
+                if packed is None:  # a block holds more than 16 labels: bytes for everyone
+                    self.labels_packed = False
+                    break
+                nibbles[off // 2 : (off + span) // 2] = packed[0]
+                palette[off // BLOCK * PALETTE : (off + span) // BLOCK * PALETTE] = packed[1]
+        if not self.labels_packed:
+            flat_lab = torch.zeros((total,), dtype=torch.uint8)
+            for p, keep, dim, off, span in runs:
+                flat_lab[off : off + span] = _label_run(p, keep, dim, span)
         dev = self.device
         self._ct = flat_ct.to(dev)
-        self._lab = flat_lab.to(dev)
+        if self.labels_packed:
+            self._nibbles, self._palette = nibbles.to(dev), palette.to(dev)
+        else:
+            self._lab = flat_lab.to(dev)
         dims_t = torch.tensor(dims, dtype=torch.int64)
         self._dmax = (dims_t - 2).to(dev, torch.float32)  # (P, 3) largest lower-corner index
         # strides of (x, y, z) in the (X, Z, Y) memory order
@@ -330,9 +360,18 @@ class Slicer:
         return len(self.names)
 
     @property
+    def num_voxels(self) -> int:
+        """Voxels held, all patients (padding and block alignment included)."""
+        return self._ct.numel()
+
+    @property
     def nbytes(self) -> int:
         """Bytes held by the slicer: volume buffers and scratch."""
-        return self._ct.numel() * 2 + self._lab.numel() + self._ws.nbytes
+        if self.labels_packed:
+            labels = self._nibbles.numel() + self._palette.numel()
+        else:
+            labels = self._lab.numel()
+        return self._ct.numel() * 2 + labels + self._ws.nbytes
 
     def default_patient_index(self, n: int) -> torch.Tensor:
         """Round-robin assignment of n envs to the patients (env i -> patient i % P)."""
@@ -479,7 +518,15 @@ class Slicer:
         # Labels: nearest voxel.
         tmp_i.copy_(near).add_(idx)
         lab_c = ws.get("lab_c", shape, torch.uint8)
-        torch.index_select(self._lab, 0, tmp_i.view(-1), out=lab_c.view(-1))
+        if self.labels_packed:
+            scratch = (
+                ws.get("lab_i0", shape, torch.int32),
+                ws.get("lab_i1", shape, torch.int32),
+                ws.get("lab_u8", shape, torch.uint8),
+            )
+            gather_labels(self._nibbles, self._palette, tmp_i, lab_c, scratch)
+        else:
+            torch.index_select(self._lab, 0, tmp_i.view(-1), out=lab_c.view(-1))
         # CT: trilinear from the 8 corners (pairs along the contiguous y axis).
         vol = self._ct
         g16 = ws.get("g16", shape, torch.float16)

@@ -310,8 +310,38 @@ def test_delta_indices_stack_history_and_chunks_with_pads(tmp_path):
 
 def test_decoded_cache_equals_bytes_cache(tmp_path):
     write(tmp_path / "ds", random_episodes(2))
-    a = LeRobotFrames(tmp_path / "ds", image_cache="bytes", cache_mb=0)
+    with pytest.warns(UserWarning, match="do not fit"):  # no cache: every access re-reads
+        a = LeRobotFrames(tmp_path / "ds", image_cache="bytes", cache_mb=0)
     b = LeRobotFrames(tmp_path / "ds", image_cache="decoded")
     for i in range(len(a)):
         for k in (IMG, RGB):
             assert torch.equal(a[i][k], b[i][k])
+
+
+def test_the_default_image_cache_reads_each_data_file_once(tmp_path, monkeypatch):
+    import sonogym.imitation.reader as reader
+
+    write(tmp_path / "ds", random_episodes(6), data_files_size_in_mb=0)
+    files = sorted((tmp_path / "ds" / "data").glob("*/*.parquet"))
+    assert len(files) > 2  # one data file per episode
+    reads = []
+    real = reader.pq.read_table
+    monkeypatch.setattr(
+        reader.pq, "read_table", lambda path, **kw: reads.append(path) or real(path, **kw)
+    )
+    ds = LeRobotFrames(tmp_path / "ds")  # budget: the data files' size
+    reads.clear()
+    for i in torch.randperm(len(ds), generator=torch.Generator().manual_seed(0)).tolist() * 2:
+        ds[i]
+    assert sorted(reads) == files  # random order, two passes: each file read once
+    # a budget below the data files' size says so (random sampling re-reads files)
+    with pytest.warns(UserWarning, match="do not fit the image cache"):
+        small = LeRobotFrames(tmp_path / "ds", cache_mb=0)
+    reads.clear()
+    for i in torch.randperm(len(small), generator=torch.Generator().manual_seed(0)).tolist():
+        small[i]
+    assert len(reads) > len(files)
+    # ... and so does a machine with too little memory for them
+    monkeypatch.setattr(reader, "available_memory", lambda: 2 * 1024)
+    with pytest.warns(UserWarning, match="half the memory available"):
+        LeRobotFrames(tmp_path / "ds")

@@ -22,7 +22,6 @@ import gzip
 import hashlib
 import json
 import math
-import os
 from pathlib import Path
 
 import nibabel as nib
@@ -33,6 +32,7 @@ from scipy import ndimage
 
 from sonogym.anatomy import labels as L
 from sonogym.anatomy.patient import Patient, PatientError
+from sonogym.memory import available_memory
 from sonogym.runs import atomic_write_bytes, atomic_write_text
 
 COMBINED_NAMES = ("combined_label_map", "labels")
@@ -75,18 +75,9 @@ def _nifti(folder: Path, stem: str) -> Path | None:
 
 
 def _available_memory() -> int:
-    """Bytes of memory available now (Linux MemAvailable; else physical memory)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return MAX_LOAD_BYTES
+    """Bytes of memory available now (``sonogym.memory``; the load cap if unknown)."""
+    avail = available_memory()
+    return MAX_LOAD_BYTES if avail is None else avail
 
 
 def _check_memory(needed: float, what: str) -> None:

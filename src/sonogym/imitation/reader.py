@@ -18,6 +18,7 @@ count: rows an interrupted writer left past them are ignored.
 
 from __future__ import annotations
 
+import warnings
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,7 @@ import pyarrow.parquet as pq
 import torch
 
 from sonogym.imitation import lerobot_format as fmt
+from sonogym.memory import available_memory
 
 BOOKKEEPING = tuple(fmt.DEFAULT_FEATURES)
 
@@ -96,7 +98,11 @@ class LeRobotFrames(torch.utils.data.Dataset):
         image_cache: "bytes" keeps the PNG bytes of the data files read (LRU, ``cache_mb``
             MiB), decoding on access; "decoded" decodes every image once at start (uint8 in
             memory, fastest for small datasets).
-        cache_mb: memory budget of the "bytes" cache in MiB.
+        cache_mb: memory budget of the "bytes" cache in MiB; None (default): the size of the
+            data files on disk, so that each is read once, but at most half the memory
+            available now. A budget smaller than the data files warns: random sampling then
+            re-reads whole files (a 1,000-episode navigation dataset, 5.3 GB, trained ACT ~4x
+            slower per step than its 200-episode subset behind a 4 GiB budget).
     """
 
     def __init__(
@@ -107,7 +113,7 @@ class LeRobotFrames(torch.utils.data.Dataset):
         episodes: list[int] | None = None,
         drop_n_last_frames: int = 0,
         image_cache: str = "bytes",
-        cache_mb: float = 4096,
+        cache_mb: float | None = None,
     ) -> None:
         self.root = Path(root)
         self.info = fmt.read_info(root)
@@ -146,7 +152,7 @@ class LeRobotFrames(torch.utils.data.Dataset):
         self._items = torch.cat(items) if items else torch.zeros(0, dtype=torch.long)
         self._cache: OrderedDict[int, dict[str, list[bytes]]] = OrderedDict()
         self._cache_bytes = 0
-        self._cache_limit = cache_mb * 2**20
+        self._cache_limit = self._cache_budget(cache_mb) if image_cache == "bytes" else 0
         self._decoded: dict[str, torch.Tensor] | None = None
         if image_cache == "decoded" and self.image_keys:
             self._decoded = {k: self._decode_all(k) for k in self.image_keys}
@@ -188,6 +194,27 @@ class LeRobotFrames(torch.utils.data.Dataset):
             self._numeric[k] = torch.from_numpy(np.ascontiguousarray(arr))
         self._file_of = np.concatenate(file_of)
         self._row_of = np.concatenate(row_of)
+
+    def _cache_budget(self, cache_mb: float | None) -> float:
+        """Bytes the "bytes" cache may hold (see ``cache_mb``); warns when the data files do
+        not fit."""
+        need = sum(f.stat().st_size for f in self._files)
+        if cache_mb is not None:
+            budget, why = float(cache_mb) * 2**20, f"cache_mb={cache_mb:g}"
+        else:
+            budget, why = float(need), "the data files' size"
+            avail = available_memory()
+            if avail is not None and avail / 2 < need:
+                budget, why = avail / 2, "half the memory available"
+        if self.image_keys and budget < need:
+            warnings.warn(
+                f"{self.root}: its data files ({need / 2**30:.2f} GiB) do not fit the image "
+                f"cache ({budget / 2**30:.2f} GiB, {why}): random sampling will re-read whole "
+                "files, which can slow training several-fold; free memory, give a larger "
+                "cache_mb, or train on fewer episodes",
+                stacklevel=3,
+            )
+        return budget
 
     def _file_images(self, fi: int) -> dict[str, list[bytes]]:
         got = self._cache.get(fi)

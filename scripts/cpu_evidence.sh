@@ -15,12 +15,12 @@ $S train --task navigation --algo ppo $T --steps 4512 --obs-downsample 4 --proto
 # Reconstruction, submodular PPO.
 $S train --task reconstruction --algo ppo $T --steps 4000 --out runs/recon-ppo-small-s0
 # Surgery from the privileged state (issue 14's first step): cpu preset (sigma ceiling
-# 0.05 -> 0.005 over 100k steps; state v2, unsafe penalty 1.0, bounded mean, staggered
-# episodes, workspace ball, statistics frozen at 30k: the defaults since 2026-11-25, third
-# session), 3 seeds, ~35 CPU min each on a loaded machine (seed 2 was stopped at 9.5k).
+# 0.05 -> 0.005 over 100k steps; state v2, unsafe penalty 0.3, bounded mean, staggered
+# episodes, workspace ball, statistics frozen at 30k: the defaults since 2026-11-25, fourth
+# session), 3 seeds, ~39 CPU min each on a loaded machine.
 for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 120000 \
-      --out runs/surg-state-v3-s$s
+      --out runs/surg-state-p03-s$s
 done
 # Surgery from the paper's observation (US volume pooled 2x to 5 x 25 x 18, + tracked pose),
 # PPO trained for the safety filter (the filter acts at test time only), ~90 min. (The
@@ -60,7 +60,7 @@ $S eval --run runs/nav-ppo-small-s0 --protocol odt-patient
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol idt
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim
 $S eval --run runs/recon-ppo-small-s0 --protocol idt
-for r in runs/surg-state-v3-s0 runs/surg-state-v3-s1 runs/surg-state-v3-s2 \
+for r in runs/surg-state-p03-s0 runs/surg-state-p03-s1 runs/surg-state-p03-s2 \
     runs/surg-img-sf-anneal-s0 runs/il-surg-act; do
   $S eval --run $r --protocol idt --envs 50
   $S eval --run $r --protocol odt-patient --envs 50
@@ -72,10 +72,8 @@ $S eval --run runs/il-nav-dp --trials 100 --envs 50
 $S report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 \
     --out docs/results/navigation
 $S report --task reconstruction --runs runs/recon-ppo-small-s0 --out docs/results/reconstruction
-# (Table 1 in docs/results.md still pools the state version-1 runs, runs/surg-state-anneal-s*,
-# trained and evaluated with the code of 2026-11-25's second session; this regenerates it.)
-$S report --task surgery --runs runs/surg-state-v3-s0 runs/surg-state-v3-s1 \
-    runs/surg-state-v3-s2 runs/surg-img-sf-anneal-s0 runs/il-surg-act --out docs/results/surgery
+$S report --task surgery --runs runs/surg-state-p03-s0 runs/surg-state-p03-s1 \
+    runs/surg-state-p03-s2 runs/surg-img-sf-anneal-s0 runs/il-surg-act --out docs/results/surgery
 $S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/results/navigation-sweep \
     --metric "Episode / return" --metric "Episode / position_error_mm"
 $S plot --runs runs/nav-ppo-small-s0 --out docs/results/navigation-curves \

@@ -61,7 +61,7 @@ def test_regions_on_hand_made_points():
     assert surgery_regions(p, hw, L).tolist() == want
 
 
-P = 1.0  # unsafe_penalty (reward per unsafe step)
+P = 0.3  # unsafe_penalty (reward per unsafe step)
 
 
 def _reward(p0, t0, p1, t1, hw=0.0055):

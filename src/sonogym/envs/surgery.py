@@ -61,12 +61,14 @@ ended its episodes outside the safe set with +1.22 (another seed set: +0.69), mo
 standing still (0); the reference avoided the trap with dense shaping everywhere. Here the
 unsafe region keeps the C_free formula's shaping toward p_l (the reference's dense term), so
 leaving the corridor gives back everything the insertion earned, and each unsafe step costs
-``unsafe_penalty`` (1.0) more. (It was 0.1 until 2026-11-25: at 0.1, PPO seeds drifted into
-pushing through the target and beyond, 600 unsafe steps costing only 60; docs/results.md.)
+``unsafe_penalty`` (0.3) more. (At 0.1, PPO seeds drifted into pushing through the target and
+beyond, 600 unsafe steps costing only 60; at 1.0, one state seed in three learned to hover
+above the corridor's entrance rather than risk crossing it; at 0.3 all three entered the
+corridor and ended safe in >= 99.6 % of their steps; docs/results.md.)
 Being paid for the current state (not the deepest point reached, as a guard on the paper's
 formula did before) means backing out of the corridor gives back what going in earned.
 Consequences, tested: no closed path earns reward (a potential; a loop through the unsafe
-region loses 1.0 per unsafe step), pushing along the drill axis or leaving the corridor and
+region loses 0.3 per unsafe step), pushing along the drill axis or leaving the corridor and
 staying out earns less than standing still, unit-noise dithering earns less than standing
 still, reaching depth and backing out earns less than staying, and the expert's return is the
 largest of these. The C_free side of the corridor's
@@ -172,7 +174,7 @@ class SurgeryConfig:
     w4: float = 30.0  # reward per m of progress toward p_l in C_free (paper)
     w5: float = 5.0  # reward per rad of drill-axis alignment (paper)
     w6: float = 300.0  # reward per m of progress toward {G} in C_drill (paper)
-    unsafe_penalty: float = 1.0  # reward lost per step that ends in the unsafe region
+    unsafe_penalty: float = 0.3  # reward lost per step that ends in the unsafe region
     corridor_damping: float = 0.2  # factor on lateral + rotational actions in C_drill; 1: off
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 

@@ -59,6 +59,7 @@ class TaskRLConfig:
     stagger_episodes: bool = False  # first episodes of a run end at random steps (adapter)
     standardize_vectors: bool = False  # running standardisation of vector observations
     standardize_steps: int = 0  # env steps per env its statistics learn for (0: all)
+    kl_follows_sigma: bool = False  # KL threshold x (sigma_0 / sigma ceiling)^2 (train.py)
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
     cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
     cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (cost in [0, 1])
@@ -98,6 +99,7 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         stagger_episodes=t.stagger_episodes,
         standardize_vectors=t.standardize_vectors,
         standardize_steps=t.standardize_steps,
+        kl_follows_sigma=t.kl_follows_sigma,
         cost_learning_rate=safety.cost_learning_rate,
         cost_threshold=safety.cost_threshold,
         filter_mode=safety.filter_mode,

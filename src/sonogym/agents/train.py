@@ -29,6 +29,7 @@ saves a checkpoint at the last completed step and says how to resume.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -52,7 +53,7 @@ from sonogym.agents.configs import (
     resume_config,
     to_jsonable,
 )
-from sonogym.agents.networks import make_models
+from sonogym.agents.networks import log_std_ceiling, make_models
 from sonogym.envs.registry import get_task, make_vec
 from sonogym.runs import (
     TrainingInterrupted,
@@ -243,6 +244,8 @@ def run_training(
     try:
         for t in range(start, steps):
             set_log_std_ceiling(models["policy"], task_cfg, t)
+            if cfg.rl.kl_follows_sigma and getattr(agent, "scheduler", None) is not None:
+                agent.scheduler.kl_threshold = kl_threshold_at(cfg.rl, algo, t)
             adapter.update_stats = statistics_update(cfg.rl, t)
             agent.pre_interaction(timestep=t, timesteps=steps)
             with torch.no_grad():
@@ -396,6 +399,23 @@ def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]
         update_s = (time.perf_counter() - t0) * getattr(p, "learning_epochs", 1) * p.mini_batches
     adapter.restart()  # the run starts as if unmeasured (staggered again where asked)
     return step_s, update_s
+
+
+def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
+    """The KL-adaptive learning rate's threshold at env step ``step`` (per env): the
+    algorithm's ``kl_threshold``, times (sigma_0 / ceiling)^2 where ``kl_follows_sigma`` is
+    set and sigma's ceiling anneals.
+
+    Why: the KL of a fixed change of the Gaussian's mean grows as 1/sigma^2, so with a fixed
+    threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
+    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then
+    (surgery state seeds, docs/results.md). Scaled, the threshold bounds the mean's step per
+    update in action units instead, the same at every sigma."""
+    base = rl.params(algo).kl_threshold
+    if not rl.kl_follows_sigma or rl.final_log_std is None:
+        return base
+    ceiling = log_std_ceiling(step, rl.init_log_std, rl.final_log_std, rl.anneal_steps)
+    return base * math.exp(2.0 * (rl.init_log_std - ceiling))
 
 
 def statistics_update(rl: TaskRLConfig, step: int) -> bool:

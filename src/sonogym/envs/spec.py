@@ -199,6 +199,7 @@ class TrainingDefaults:
     ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
     standardize_vectors: bool = False  # running standardisation of vector observations
     standardize_steps: int = 0  # env steps per env the statistics learn for (0: the whole run)
+    kl_follows_sigma: bool = False  # KL-adaptive lr threshold scaled by (sigma_0 / ceiling)^2
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
     safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
 

@@ -163,3 +163,56 @@ def test_observation_statistics_freeze_after_standardize_steps(tmp_path):
         assert torch.equal(at16[k], at32[k])
     with pytest.raises(ValueError, match="standardize_steps must be an integer >= 0"):
         dataclasses.replace(base, rl=dataclasses.replace(base.rl, standardize_steps=-1))
+
+
+def test_kl_threshold_follows_sigma_when_asked(tmp_path, monkeypatch):
+    import dataclasses
+
+    from skrl.resources.schedulers.torch import KLAdaptiveLR
+
+    from sonogym.agents.configs import resolve_train_config
+    from sonogym.agents.train import kl_threshold_at, run_training
+
+    torch.set_num_threads(1)
+    rl = task_config("surgery", preset="cpu")
+    base_kl = rl.ppo.kl_threshold
+    assert not rl.kl_follows_sigma and kl_threshold_at(rl, "ppo", 10**6) == base_kl  # off
+    on = dataclasses.replace(rl, kl_follows_sigma=True)
+    # the threshold bounds the same mean step at every sigma: x (sigma_0 / ceiling)^2
+    assert kl_threshold_at(on, "ppo", 0) == pytest.approx(base_kl)
+    end = kl_threshold_at(on, "ppo", on.anneal_steps)
+    assert end == pytest.approx(base_kl * (0.05 / 0.005) ** 2)
+    assert kl_threshold_at(on, "ppo", 10 * on.anneal_steps) == pytest.approx(end)
+    mid = kl_threshold_at(on, "ppo", on.anneal_steps // 2)
+    assert mid == pytest.approx(base_kl * 10.0)  # geometric: sqrt(100)
+    no_anneal = dataclasses.replace(on, final_log_std=None)
+    assert kl_threshold_at(no_anneal, "ppo", 10**6) == base_kl
+
+    # ... and the training loop hands it to skrl's scheduler before every update
+    seen = []
+    real_step = KLAdaptiveLR.step
+
+    def step(self, kl=None, **kw):
+        if kl is not None:  # (torch's base class steps once, without a KL, while constructing)
+            seen.append(self.kl_threshold)
+        return real_step(self, kl, **kw)
+
+    monkeypatch.setattr(KLAdaptiveLR, "step", step)
+    base = resolve_train_config(
+        "surgery", "ppo", preset="cpu", envs=4, steps=32, checkpoint_interval=32,
+        env_kwargs=dict(patients=(0,), phantom_spacing=0.002, obs_mode="state",
+                        episode_length=16),
+    )  # fmt: skip
+    fast = dataclasses.replace(
+        base.rl,
+        kl_follows_sigma=True,
+        anneal_steps=32,
+        ppo=dataclasses.replace(base.rl.ppo, rollouts=8),
+    )
+    run_training(dataclasses.replace(base, rl=fast), tmp_path / "kl", progress=False,
+                 log=lambda _: None)  # fmt: skip
+    updates = [t for t in range(32) if (t + 1) % 8 == 0]
+    epochs = fast.ppo.learning_epochs
+    want = [kl_threshold_at(fast, "ppo", t) for t in updates for _ in range(epochs)]
+    assert seen == pytest.approx(want)
+    assert seen[-1] > 50 * base_kl

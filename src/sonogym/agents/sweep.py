@@ -14,8 +14,8 @@ status, final metrics); ``sonogym sweep`` then draws the mean ± 1 sigma learnin
 seeds into ``out/plots`` (``sonogym plot --runs out/runs``).
 
 Grid keys: ``num_envs``, ``net``, ``obs_downsample``, ``reward_scale``, ``init_log_std``,
-``final_log_std``, ``anneal_steps``, ``mean_bound_penalty``, ``standardize_steps`` (the task
-config),
+``final_log_std``, ``anneal_steps``, ``mean_bound_penalty``, ``standardize_steps``,
+``kl_follows_sigma`` (the task config),
 ``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an env option).
 Ray runs locally unless ``address`` names a cluster (``ray://host:10001``).
 """
@@ -39,7 +39,7 @@ RAY_HINT = "sonogym sweep needs Ray Tune: pip install 'sonogym[ray]' (or pip ins
 SWEEP_FILE = "sweep.json"
 TASK_KEYS = (
     "num_envs", "net", "obs_downsample", "reward_scale", "init_log_std", "final_log_std",
-    "anneal_steps", "mean_bound_penalty", "standardize_steps",
+    "anneal_steps", "mean_bound_penalty", "standardize_steps", "kl_follows_sigma",
 )  # fmt: skip
 
 

@@ -410,7 +410,9 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
     threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
     to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then
     (surgery state seeds, docs/results.md). Scaled, the threshold bounds the mean's step per
-    update in action units instead, the same at every sigma."""
+    update in action units instead, the same at every sigma. Tried on the surgery state
+    seeds it kept the learning rate 3-8x higher and made their tilt worse, so it is off by
+    default (docs/results.md)."""
     base = rl.params(algo).kl_threshold
     if not rl.kl_follows_sigma or rl.final_log_std is None:
         return base

@@ -190,13 +190,19 @@ def _crop_range(patient: Patient, box) -> tuple[list[tuple[int, int]], np.ndarra
     return keep, lim
 
 
+def _fill_box(flat: torch.Tensor, dims, volume: torch.Tensor, keep) -> None:
+    """Write the ``keep`` ranges of ``volume`` (x, y, z) inside the one-voxel border of the
+    padded box of ``dims`` that starts ``flat``, stored in the slicer's memory order (X, Z, Y)."""
+    dx, dy, dz = dims
+    box = flat[: dx * dy * dz].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z) view
+    box[1:-1, 1:-1, 1:-1] = volume[tuple(slice(a, b) for a, b in keep)].to("cpu")
+
+
 def _label_run(patient: Patient, keep, dims, span: int) -> torch.Tensor:
     """A patient's kept labels as one flat uint8 run of ``span`` voxels in the slicer's memory
-    order (X, Z, Y), with the one-voxel air border and zeros after the padded box."""
-    dx, dy, dz = dims
+    order, with the one-voxel border and zeros after the padded box (label 0: air)."""
     run = torch.zeros(span, dtype=torch.uint8)
-    box = run[: dx * dy * dz].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z) view
-    box[1:-1, 1:-1, 1:-1] = patient.labels[tuple(slice(a, b) for a, b in keep)].to("cpu")
+    _fill_box(run, dims, patient.labels, keep)
     return run
 
 
@@ -301,9 +307,8 @@ class Slicer:
         # gathers below, which run along depth, touch neighbouring memory.
         flat_ct = torch.full((total,), AIR_HU, dtype=torch.float16)
         orgs, sps, seeds = [], [], []
-        for p, keep, (dx, dy, dz), off in zip(patients, keeps, dims, offs, strict=True):
-            ct = flat_ct[off : off + dx * dy * dz].view(dx, dz, dy).permute(0, 2, 1)  # (x, y, z)
-            ct[1:-1, 1:-1, 1:-1] = p.ct[tuple(slice(a, b) for a, b in keep)].to("cpu")
+        for p, keep, dim, off in zip(patients, keeps, dims, offs, strict=True):
+            _fill_box(flat_ct[off:], dim, p.ct, keep)
             sp = p.spacing
             first = np.array([a for a, _ in keep], dtype=np.float64)
             orgs.append(p.origin + (first - 1) * sp)  # padded voxel 0: one before the first kept

@@ -2,7 +2,9 @@
 still, unit-noise actions, backing out of or leaving the corridor, pushing along the drill
 axis. The table in docs/envs.md ("Deviation from the paper's 0 otherwise") comes from
 
-    python scripts/surgery_policy_returns.py [spacing_m=0.001] [seed=0]
+    python scripts/surgery_policy_returns.py [spacing_m=0.001] [seed=0] [w5_per_rad=5]
+
+(w5 = 50: the weight the ``cpu`` training preset trains surgery with.)
 """
 
 import sys
@@ -45,7 +47,8 @@ def main() -> None:
     torch.set_num_threads(1)
     spacing = float(sys.argv[1]) if len(sys.argv) > 1 else 0.001
     seed = int(sys.argv[2]) if len(sys.argv) > 2 else 0
-    env = make_vec("surgery", N, obs_mode="state", phantom_spacing=spacing)
+    w5 = float(sys.argv[3]) if len(sys.argv) > 3 else 5.0
+    env = make_vec("surgery", N, obs_mode="state", phantom_spacing=spacing, w5=w5)
     print("| policy | return | safe ratio | insertion mm | side mm |\n|---|---|---|---|---|")
     for name, policy in POLICIES.items():
         _, info = env.reset(seed=seed)

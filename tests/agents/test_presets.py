@@ -51,6 +51,25 @@ def test_cpu_preset_resolves_per_task():
     assert (paper.rl.num_envs, paper.rl.net, paper.threads) == (128, "paper", None)
 
 
+def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
+    # the cpu preset trains surgery with w5 = 50 per rad; the env's default and the paper
+    # preset keep the paper's 5 (DESIGN.md section 5)
+    from sonogym.envs.surgery import SurgeryConfig
+
+    assert SurgeryConfig().w5 == 5.0
+    cpu = resolve_train_config("surgery", "ppo", preset="cpu")
+    assert cpu.rl.env_kwargs == get_task("surgery").training.env_kwargs_cpu == {"w5": 50.0}
+    assert resolve_train_config("surgery", "ppo", preset="paper").rl.env_kwargs == {}
+    given = resolve_train_config(
+        "surgery", "ppo", preset="cpu", env_kwargs={"w5": 5.0, "obs_mode": "state"}
+    )
+    assert given.rl.env_kwargs == {"w5": 5.0, "obs_mode": "state"}
+    nav = resolve_train_config("navigation", "ppo", preset="cpu")
+    assert nav.rl.env_kwargs == {}  # tasks without CPU env options train on the env defaults
+    back = TrainConfig.from_dict(json.loads(json.dumps(cpu.to_dict())))
+    assert back.rl.env_kwargs == {"w5": 50.0}  # config.json records it for eval and resume
+
+
 @pytest.mark.parametrize("preset", ["cpu", "paper"])
 def test_every_preset_keeps_the_tasks_exploration(preset):
     # presets size the machine's share only; the task owns its initial policy std

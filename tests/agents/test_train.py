@@ -151,4 +151,5 @@ def test_cli_train_and_refusal(tmp_path):
     assert json.loads((out / "config.json").read_text())["task_config"]["env_kwargs"] == {
         "patients": [0],
         "phantom_spacing": 0.002,
+        "w5": 50.0,  # the cpu preset's surgery option, recorded for eval and resume
     }

@@ -79,7 +79,8 @@ class TaskRLConfig:
 def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
     """The task's registry defaults as a ``TaskRLConfig``, with fields replaced
     (``dataclasses.replace`` semantics); an unknown task names the known ones. ``preset``
-    "cpu" takes the task's CPU PPO table where it has one (``TrainingDefaults.ppo_cpu``)."""
+    "cpu" takes the task's CPU PPO table where it has one (``TrainingDefaults.ppo_cpu``) and its
+    CPU env options (``TrainingDefaults.env_kwargs_cpu``)."""
     t = get_task(task).training
     safety = t.safety or SafetyParams()
     base = TaskRLConfig(
@@ -105,6 +106,7 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
         filter_mode=safety.filter_mode,
         cost_limit=safety.cost_limit,
         pid_gains=safety.pid_gains,
+        env_kwargs=dict(t.env_kwargs_cpu) if preset == "cpu" else {},
     )
     return dataclasses.replace(base, **overrides)
 

@@ -16,11 +16,11 @@ $S train --task navigation --algo ppo $T --steps 4512 --obs-downsample 4 --proto
 $S train --task reconstruction --algo ppo $T --steps 4000 --out runs/recon-ppo-small-s0
 # Surgery from the privileged state (issue 14's first step): cpu preset (sigma ceiling
 # 0.05 -> 0.005 over 100k steps; state v2, unsafe penalty 0.3, bounded mean, staggered
-# episodes, workspace ball, statistics frozen at 30k: the defaults since 2026-11-25, fourth
-# session), 3 seeds, ~39 CPU min each on a loaded machine.
+# episodes, workspace ball, statistics frozen at 30k; w5 = 50 per rad, the cpu preset's
+# since 2026-11-25, fifth session), 3 seeds, 84k steps, <= 30 CPU min each.
 for s in 0 1 2; do
-  $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 120000 \
-      --out runs/surg-state-p03-s$s
+  $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 84000 \
+      --out runs/surg-state-w5-s$s
 done
 # Surgery from the paper's observation (US volume pooled 2x to 5 x 25 x 18, + tracked pose),
 # PPO trained for the safety filter (the filter acts at test time only), ~90 min. (The
@@ -46,6 +46,12 @@ $S il-train --policy act --data runs/ds-nav-mb --out runs/il-nav-act --resume --
     --threads 1
 $S il-train --policy diffusion --data runs/ds-nav-mb --image-size 100x75 --steps 32000 \
     --threads 1 --out runs/il-nav-dp
+# ... and on 1,000 episodes (the runs that meet the navigation targets), <= 90 CPU min each.
+$S record --task navigation --preset mb --episodes 1000 --envs 16 --out runs/ds-nav-mb-1000
+$S il-train --policy act --data runs/ds-nav-mb-1000 --image-size 100x75 --steps 128000 \
+    --threads 1 --out runs/il-nav-act-1000
+$S il-train --policy diffusion --data runs/ds-nav-mb-1000 --image-size 100x75 --steps 80000 \
+    --threads 1 --out runs/il-nav-dp-1000
 $S record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb
 $S il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 --out runs/il-surg-act
 # Seeds on Ray Tune: PPO navigation x 3 seeds and one A2C seed.
@@ -60,25 +66,28 @@ $S eval --run runs/nav-ppo-small-s0 --protocol odt-patient
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol idt
 $S eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim
 $S eval --run runs/recon-ppo-small-s0 --protocol idt
-for r in runs/surg-state-p03-s0 runs/surg-state-p03-s1 runs/surg-state-p03-s2 \
+for r in runs/surg-state-w5-s0 runs/surg-state-w5-s1 runs/surg-state-w5-s2 \
     runs/surg-img-sf-anneal-s0 runs/il-surg-act; do
   $S eval --run $r --protocol idt --envs 50
   $S eval --run $r --protocol odt-patient --envs 50
 done
 $S eval --run runs/il-nav-act --trials 100 --envs 50
 $S eval --run runs/il-nav-dp --trials 100 --envs 50
+$S eval --run runs/il-nav-act-1000 --trials 100 --envs 50
+$S eval --run runs/il-nav-act-1000 --trials 100 --envs 50 --seed 2000 --name idt-seed2000
+$S eval --run runs/il-nav-dp-1000 --trials 100 --envs 50
 
 # Tables and figures (from the saved episode logs and TensorBoard files only).
 $S report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 \
     --out docs/results/navigation
 $S report --task reconstruction --runs runs/recon-ppo-small-s0 --out docs/results/reconstruction
-$S report --task surgery --runs runs/surg-state-p03-s0 runs/surg-state-p03-s1 \
-    runs/surg-state-p03-s2 runs/surg-img-sf-anneal-s0 runs/il-surg-act --out docs/results/surgery
+$S report --task surgery --runs runs/surg-state-w5-s0 runs/surg-state-w5-s1 \
+    runs/surg-state-w5-s2 runs/surg-img-sf-anneal-s0 runs/il-surg-act --out docs/results/surgery
 $S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/results/navigation-sweep \
     --metric "Episode / return" --metric "Episode / position_error_mm"
 $S plot --runs runs/nav-ppo-small-s0 --out docs/results/navigation-curves \
     --metric "Episode / return" --metric "Episode / position_error_mm"
 # RL and IL side by side (navigation bars)
 for s in 0 1 2; do $S eval --run runs/sweep-nav-ppo/runs/navigation-ppo-s$s --trials 100 --envs 50; done
-$S report --task navigation --runs runs/sweep-nav-ppo/runs runs/il-nav-act runs/il-nav-dp \
+$S report --task navigation --runs runs/sweep-nav-ppo/runs runs/il-nav-act-1000 runs/il-nav-dp-1000 \
     --out docs/results/navigation-il --no-curves

@@ -78,3 +78,36 @@ def test_envs_slice_only_what_their_probe_can_reach_with_the_same_images(task):
     assert sl1.cropped and not sl0.cropped
     assert sl1.nbytes < 0.85 * sl0.nbytes
     assert (ct1 - ct0).abs().max() < 0.05 and torch.equal(lab1, lab0)
+
+
+def test_navigation_loads_its_patients_one_at_a_time_into_the_same_slicer(monkeypatch):
+    """Navigation reads volumes only through its slicer, so its scene crops each patient right
+    after loading it (never all full volumes at once) and images the same as a scene that loads
+    them all first."""
+    import sonogym.envs.scene as scene_mod
+    from sonogym.envs.probe_scene import ProbeScene
+    from sonogym.ultrasound.slicer import PatientCrop
+
+    events = []
+    load, crop = scene_mod.resolve_patients, PatientCrop.of
+    monkeypatch.setattr(
+        scene_mod, "resolve_patients", lambda s, sp: events.append(("load", list(s))) or load(s, sp)
+    )
+    monkeypatch.setattr(
+        PatientCrop,
+        "of",
+        staticmethod(lambda p, *a: events.append(("crop", p.name)) or crop(p, *a)),
+    )
+    env = make_vec("navigation", 4, patients=(0, 1), phantom_spacing=0.002, obs_mode="ct")
+    assert events == [
+        ("load", [0]), ("crop", "phantom-0"), ("load", [1]), ("crop", "phantom-1"),
+    ]  # fmt: skip
+    scene = env.scene
+    assert isinstance(scene, ProbeScene) and scene.slicer.cropped
+    whole_first = ProbeScene.from_config(env.cfg, 4, env.device, render=True, keep_volumes=True)
+    assert whole_first.slicer.nbytes == scene.slicer.nbytes
+    for k in ("_ct", "_nibbles", "_palette", "_offsets", "_lim"):
+        assert torch.equal(getattr(whole_first.slicer, k), getattr(scene.slicer, k)), k
+    env.reset(seed=2)
+    whole_first.probe_pos, whole_first.probe_rot = scene.probe_pos, scene.probe_rot
+    assert torch.equal(whole_first.observe("ct"), scene.observe("ct"))

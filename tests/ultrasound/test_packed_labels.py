@@ -11,7 +11,14 @@ from us_synthetic import random_poses
 
 from sonogym.anatomy.totalseg import load_totalsegmentator
 from sonogym.ultrasound import ProbeGeometry, Slicer
-from sonogym.ultrasound._packed_labels import BLOCK, PALETTE, gather_labels, pack_labels
+from sonogym.ultrasound._packed_labels import (
+    BLOCK,
+    PALETTE,
+    gather_labels,
+    pack_labels,
+    unpack_labels,
+)
+from sonogym.ultrasound.slicer import PatientCrop
 
 SUBJECT = Path(__file__).resolve().parents[1] / "data" / "totalsegmentator_example"
 
@@ -39,6 +46,7 @@ def test_pack_then_gather_returns_every_label_id():
     # a block's palette: its distinct labels, ascending
     used = torch.unique(labels[:BLOCK])
     assert torch.equal(palette[: used.numel()], used)
+    assert torch.equal(unpack_labels(nibbles, palette), labels)
 
 
 def test_a_block_with_more_than_16_labels_is_not_packed():
@@ -83,3 +91,29 @@ def test_a_patient_with_a_crowded_block_falls_back_to_bytes_exactly():
     plain = Slicer(crowded, probe, packed_labels=False)
     assert torch.equal(sl(pos, rot).labels, plain(pos, rot).labels)
     assert sl.nbytes == plain.nbytes
+
+
+def test_a_slicer_from_patient_crops_equals_one_from_the_patients_and_takes_their_buffers():
+    """Crops made one patient at a time (what an env over many patients builds from) give the
+    same slicer as the patients themselves: same bytes held, bit-identical slices; the slicer
+    takes the crops' buffers and refuses a crop that went into another slicer."""
+    subject = load_totalsegmentator(SUBJECT, spacing=0.002)
+    centre = torch.tensor(subject.landmarks.vertebra("L4").centre).double().numpy()
+    half = torch.tensor([0.13, 0.13, 0.12]).double().numpy()  # cuts the scan on every axis
+    box = (centre - half, centre + half)
+    probe = ProbeGeometry.linear_2d()
+    direct = Slicer([subject, subject], probe, crop_boxes=[box, None])
+    crops = [PatientCrop.of(subject, box), PatientCrop.of(subject)]
+    assert crops[0].span < crops[1].span and crops[0].palette is not None
+    assert torch.equal(crops[0].label_bytes()[: crops[0].span], crops[0].label_bytes())
+    from_crops = Slicer(crops, probe)
+    assert all(c.released for c in crops)
+    assert from_crops.nbytes == direct.nbytes and from_crops.names == direct.names
+    pos, rot = _poses_around(subject, 8, seed=6)
+    for pid in (torch.zeros(8, dtype=torch.long), torch.ones(8, dtype=torch.long)):
+        a, b = direct(pos, rot, pid), from_crops(pos, rot, pid)
+        assert torch.equal(a.ct, b.ct) and torch.equal(a.labels, b.labels)
+    with pytest.raises(ValueError, match="another Slicer"):
+        Slicer(crops[:1], probe)
+    with pytest.raises(ValueError, match="no crop box"):
+        Slicer([PatientCrop.of(subject)], probe, crop_boxes=[box])

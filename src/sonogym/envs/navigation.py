@@ -144,8 +144,9 @@ class NavigationEnv(TorchVectorEnv):
         cfg = make_config(NavigationConfig, kwargs)
         super().__init__(num_envs, cfg.device, cfg.episode_length)
         self.cfg = cfg
+        # navigation reads the volumes only through the slicer: patients load one at a time
         self.scene = ProbeScene.from_config(
-            cfg, num_envs, self.device, render=cfg.obs_mode != "state"
+            cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False
         )
         n = num_envs
         dt = torch.float32

@@ -40,6 +40,7 @@ class ProbeScene(PatientScene):
         learned_nets=(0, 1, 2, 3, 4),
         learned_precision: str = "float32",
         reach: ImagingReach | None = None,
+        keep_volumes: bool = True,
     ) -> None:
         super().__init__(
             patients,
@@ -52,6 +53,7 @@ class ProbeScene(PatientScene):
             probe or ProbeGeometry.linear_2d(),
             learned_precision=learned_precision,
             reach=reach,
+            keep_volumes=keep_volumes,
         )
         self.robot = robot
         self.reachable = torch.ones(num_envs, dtype=torch.bool, device=device)
@@ -62,11 +64,14 @@ class ProbeScene(PatientScene):
             self.build_imaging()
 
     @classmethod
-    def from_config(cls, cfg, num_envs: int, device: torch.device, render: bool) -> ProbeScene:
+    def from_config(
+        cls, cfg, num_envs: int, device: torch.device, render: bool, keep_volumes: bool = True
+    ) -> ProbeScene:
         """The scene of a probe task's config (its ``patients``, ``phantom_spacing``,
         ``simulator``, ``learned_nets``, ``robot`` and ``target_vertebra`` fields; with
         ``crop_to_reach``, images slice only what a probe within ``workspace_half_extent``
-        of the target, tilted up to ``tilt_limit`` (+ ``ARM_TILT_MARGIN``), can image)."""
+        of the target, tilted up to ``tilt_limit`` (+ ``ARM_TILT_MARGIN``), can image).
+        ``keep_volumes``: see ``PatientScene``."""
         reach = None
         if cfg.crop_to_reach:
             tilt = getattr(cfg, "tilt_limit", 0.0) + ARM_TILT_MARGIN
@@ -83,6 +88,7 @@ class ProbeScene(PatientScene):
             device=device,
             render=render,
             reach=reach,
+            keep_volumes=keep_volumes,
         )
 
     @property

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -20,6 +21,7 @@ from sonogym.anatomy import Patient, SkinSurface
 from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator, simulate_us
 from sonogym.envs.patients import resolve_patients, return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
+from sonogym.ultrasound.slicer import PatientCrop
 
 #: CT window of the "ct" observation mode, HU -> [0, 1].
 CT_WINDOW = (-1000.0, 2000.0)
@@ -93,6 +95,12 @@ class PatientScene:
         learned_precision: working precision of the learned nets ("float32", "bfloat16").
         reach: where the task's probe can be; the slicer then keeps only what it can image
             (``imaging_reach_boxes``); None keeps the whole volumes.
+        keep_volumes: True: load every patient whole first (for tasks that read the volumes
+            while they build, and the learned simulator's intensity matching). False: the task
+            reads volumes only through the slicer, so each patient is loaded, cropped for the
+            slicer (``PatientCrop``) and reduced to its ``PatientModel`` before the next one
+            loads: building never holds all full volumes at once (the same slicer, the same
+            images).
     """
 
     def __init__(
@@ -108,6 +116,7 @@ class PatientScene:
         gel_depth: float | None = None,
         learned_precision: str = "float32",
         reach: ImagingReach | None = None,
+        keep_volumes: bool = True,
     ) -> None:
         check_simulator(simulator, learned_nets, learned_precision)
         self.reach = reach
@@ -119,7 +128,11 @@ class PatientScene:
         self.nets = NetChoice(num_envs, len(self.learned_nets), device)
         self.probe_geometry = probe
         self.gel_depth = gel_depth
-        self.patients = resolve_patients(patients, spacing)
+        self._crops: list[PatientCrop] | None = None
+        if keep_volumes or simulator == "learned":
+            self.patients = resolve_patients(patients, spacing)
+        else:
+            self.patients, self._crops = self._load_cropped(patients, spacing, target_vertebra)
         self.patient_index = torch.arange(num_envs, device=device) % len(self.patients)
         self.skin = SkinSurface.stack([p.skin for p in self.patients]).to(device)
         centres = np.array([p.landmarks.vertebra(target_vertebra).centre for p in self.patients])
@@ -129,9 +142,32 @@ class PatientScene:
         self.probe_pos = torch.zeros(num_envs, 3, device=device)
         self.probe_rot = torch.eye(3, device=device).repeat(num_envs, 1, 1)
 
+    def _load_cropped(self, specs, spacing: float, target_vertebra: str):
+        """([PatientModel], [PatientCrop]): each patient loaded, cropped for the slicer and
+        released before the next loads (``keep_volumes=False``)."""
+        specs = [specs] if isinstance(specs, int | str | Path) else list(specs)
+        if not specs:
+            resolve_patients(specs, spacing)  # raises the usual error
+        models, crops = [], []
+        for spec in specs:
+            patient = resolve_patients([spec], spacing)[0]
+            box = None
+            if self.reach is not None:
+                centre = patient.landmarks.vertebra(target_vertebra).centre
+                skin = SkinSurface.stack([patient.skin]).to(self.device)
+                box = imaging_reach_boxes(skin, centre[None], self.reach, self.probe_geometry)[0]
+            crops.append(PatientCrop.of(patient, box))
+            models.append(patient.model())
+            del patient
+            return_freed_memory()
+        return models, crops
+
     # ---------------------------------------------------------------- imaging
     @cached_property
     def slicer(self) -> Slicer:
+        if self._crops is not None:  # patients loaded one at a time (keep_volumes=False)
+            crops, self._crops = self._crops, None
+            return Slicer(crops, self.probe_geometry, device=self.device)
         boxes = None
         if self.reach is not None:
             centres = self.target_centres_p.cpu().numpy()

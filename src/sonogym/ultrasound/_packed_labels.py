@@ -69,3 +69,10 @@ def gather_labels(
     # palette entry: block * PALETTE + index (BLOCK and PALETTE are powers of two)
     voxel.bitwise_right_shift_(BLOCK.bit_length() - 1).mul_(PALETTE).add_(half)
     return torch.index_select(palette, 0, voxel.view(-1), out=out.view(-1)).view(out.shape)
+
+
+def unpack_labels(nibbles: torch.Tensor, palette: torch.Tensor) -> torch.Tensor:
+    """The flat uint8 label run that ``pack_labels`` packed into (nibbles, palette)."""
+    index = torch.stack([nibbles & (PALETTE - 1), nibbles >> 4], 1).view(-1).long()
+    block = torch.arange(index.numel()) // BLOCK
+    return palette[block * PALETTE + index]

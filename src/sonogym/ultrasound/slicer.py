@@ -42,7 +42,13 @@ import torch
 
 from sonogym.anatomy.patient import Patient
 from sonogym.checks import expect_all
-from sonogym.ultrasound._packed_labels import BLOCK, PALETTE, gather_labels, pack_labels
+from sonogym.ultrasound._packed_labels import (
+    BLOCK,
+    PALETTE,
+    gather_labels,
+    pack_labels,
+    unpack_labels,
+)
 from sonogym.ultrasound._workspace import Workspace
 from sonogym.ultrasound.probe import ProbeGeometry
 
@@ -198,12 +204,90 @@ def _fill_box(flat: torch.Tensor, dims, volume: torch.Tensor, keep) -> None:
     box[1:-1, 1:-1, 1:-1] = volume[tuple(slice(a, b) for a, b in keep)].to("cpu")
 
 
-def _label_run(patient: Patient, keep, dims, span: int) -> torch.Tensor:
-    """A patient's kept labels as one flat uint8 run of ``span`` voxels in the slicer's memory
-    order, with the one-voxel border and zeros after the padded box (label 0: air)."""
-    run = torch.zeros(span, dtype=torch.uint8)
-    _fill_box(run, dims, patient.labels, keep)
-    return run
+@dataclass(eq=False)
+class PatientCrop:
+    """The part of one patient a ``Slicer`` keeps, already in its layout: the kept box with a
+    one-voxel air border in the (X, Z, Y) memory order, padded to whole label blocks.
+
+    Built from a loaded patient by ``PatientCrop.of`` (about 2.5 bytes per kept voxel), so an
+    env over many patients can load them one at a time, keep each one's crop and release its
+    full volumes (5 bytes per voxel of the whole scan) before loading the next
+    (``sonogym.envs.scene.PatientScene``). A ``Slicer`` built from crops moves their buffers
+    into its own and leaves the crops empty (``released``).
+
+    Attributes:
+        name: the patient's name.
+        dims: padded (x, y, z) box size, voxels.
+        ct: (span,) float16 HU, air in the border and after the box.
+        labels: (span,) uint8 ids, or (span / 2,) nibbles when ``palette`` is set (packed).
+        palette: None, or (span / BLOCK * PALETTE,) uint8 (``pack_labels``).
+        origin: (3,) {P} position (m) of padded voxel 0.
+        spacing: (3,) m per voxel.
+        seed: the patient's speckle seed (``speckle_seed``).
+        lim: (2, 3) {P} limits images must stay in (+-inf where the box does not cut).
+    """
+
+    name: str
+    dims: tuple[int, int, int]
+    ct: torch.Tensor
+    labels: torch.Tensor
+    palette: torch.Tensor | None
+    origin: np.ndarray
+    spacing: np.ndarray
+    seed: int
+    lim: np.ndarray
+
+    @classmethod
+    def of(cls, patient: Patient, box=None, packed_labels: bool = True) -> PatientCrop:
+        """Crop ``patient`` to ``box`` ((lo, hi) corners in {P}, m; None: keep it whole);
+        labels packed at 4 bits per voxel where every block holds at most 16 labels."""
+        if not isinstance(patient, Patient):
+            raise TypeError(
+                f"PatientCrop.of needs a Patient with its volumes, got {type(patient).__name__}"
+            )
+        keep, lim = _crop_range(patient, box)
+        dims = tuple(b - a + 2 for a, b in keep)
+        span = -(-int(np.prod(dims)) // BLOCK) * BLOCK
+        ct = torch.full((span,), AIR_HU, dtype=torch.float16)
+        _fill_box(ct, dims, patient.ct, keep)
+        labels = torch.zeros(span, dtype=torch.uint8)
+        _fill_box(labels, dims, patient.labels, keep)
+        packed = pack_labels(labels) if packed_labels else None
+        first = np.array([a for a, _ in keep], dtype=np.float64)
+        sp = np.asarray(patient.spacing, dtype=np.float64)
+        return cls(
+            name=patient.name,
+            dims=dims,
+            ct=ct,
+            labels=labels if packed is None else packed[0],
+            palette=None if packed is None else packed[1],
+            origin=patient.origin + (first - 1) * sp,  # one voxel before the first kept
+            spacing=sp,
+            seed=speckle_seed(patient),
+            lim=lim,
+        )
+
+    @property
+    def span(self) -> int:
+        """Voxels of the padded run."""
+        return self.ct.numel()
+
+    @property
+    def released(self) -> bool:
+        """True once a Slicer has taken the buffers."""
+        return self.ct.numel() == 0 and int(np.prod(self.dims)) > 0
+
+    def label_bytes(self) -> torch.Tensor:
+        """The labels as one uint8 id per voxel (unpacked if packed)."""
+        if self.palette is None:
+            return self.labels
+        return unpack_labels(self.labels, self.palette)
+
+    def release(self) -> None:
+        """Drop the buffers (a Slicer has copied them)."""
+        empty = torch.empty(0, dtype=torch.uint8)
+        self.ct, self.labels = torch.empty(0, dtype=torch.float16), empty
+        self.palette = None if self.palette is None else empty
 
 
 def upsample_linear(src: torch.Tensor, dim: int, k: int, out: torch.Tensor) -> torch.Tensor:
@@ -241,7 +325,8 @@ class Slicer:
     """Sample CT and labels of several patients on N probes' pixel grids in one batched call.
 
     Args:
-        patients: one Patient or a sequence of them.
+        patients: one Patient or a sequence of them; or ``PatientCrop``s (built one patient at
+            a time, see there), whose buffers the slicer takes over.
         probe: the pixel grid (default: the paper's 2-D linear probe).
         device: where the volumes and the outputs live (default: the first patient's CT's).
         upsample: sample at the volume's resolution and upsample to finer pixels (see the module
@@ -249,7 +334,7 @@ class Slicer:
         chunk_samples: volume samples per chunk of envs (bounds the scratch memory and keeps it
             in cache); default 2**17 on CPU, everything at once on CUDA.
         crop_boxes: per patient, None (keep the whole volume) or (lo, hi), two (3,) corners in
-            {P} (m) of the region to keep; see the module docstring.
+            {P} (m) of the region to keep; see the module docstring. None for a PatientCrop.
         packed_labels: hold labels at 4 bits per voxel with a palette per block of 512 voxels
             (``sonogym.ultrasound._packed_labels``; exact, falls back to bytes by itself where a
             block holds more than 16 labels); False keeps one byte per voxel.
@@ -270,17 +355,21 @@ class Slicer:
         crop_boxes: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None,
         packed_labels: bool = True,
     ) -> None:
-        if isinstance(patients, Patient):
+        if isinstance(patients, Patient | PatientCrop):
             patients = [patients]
         patients = list(patients)
-        if not patients or not all(isinstance(p, Patient) for p in patients):
-            raise TypeError("Slicer needs one Patient or a non-empty sequence of Patients")
+        if not patients or not all(isinstance(p, Patient | PatientCrop) for p in patients):
+            raise TypeError(
+                "Slicer needs one Patient (or PatientCrop) or a non-empty sequence of them"
+            )
         self.probe = probe if probe is not None else ProbeGeometry.linear_2d()
         if not isinstance(self.probe, ProbeGeometry):
             raise TypeError(f"probe must be a ProbeGeometry, got {type(self.probe).__name__}")
-        self.device = torch.device(device) if device is not None else patients[0].ct.device
+        if device is None:
+            first = patients[0]
+            device = first.ct.device if isinstance(first, Patient) else "cpu"
+        self.device = torch.device(device)
         self.upsample = bool(upsample)
-        self.names = [p.name for p in patients]
         if chunk_samples is None:
             chunk_samples = 2**17 if self.device.type == "cpu" else 2**40
         self.chunk_samples = int(chunk_samples)
@@ -291,45 +380,46 @@ class Slicer:
             raise ValueError(
                 f"crop_boxes has {len(crop_boxes)} entries for {len(patients)} patients"
             )
-        ranges = [_crop_range(p, box) for p, box in zip(patients, crop_boxes, strict=True)]
-        keeps = [keep for keep, _ in ranges]
-        lims = [lim for _, lim in ranges]  # (lo, hi) in {P} images must stay in (inf: not cut)
-        dims = [[b - a + 2 for a, b in keep] for keep in keeps]  # padded (x, y, z) sizes
-        sizes = [int(np.prod(d)) for d in dims]
-        spans = [-(-size // BLOCK) * BLOCK for size in sizes]  # each patient starts a block
+        crops = []
+        for p, box in zip(patients, crop_boxes, strict=True):
+            if isinstance(p, PatientCrop):
+                if box is not None:
+                    raise ValueError(f"{p.name} is already a PatientCrop: give no crop box for it")
+                if p.released:
+                    raise ValueError(f"{p.name}: this PatientCrop went into another Slicer")
+                crops.append(p)
+            else:  # cropped one at a time, each copied into the buffers below and dropped
+                crops.append(PatientCrop.of(p, box, packed_labels))
+        del patients  # the crops of Patients are the only copies: released as they are copied
+        self.names = [c.name for c in crops]
+        dims = [c.dims for c in crops]
+        spans = [c.span for c in crops]
         offs = np.concatenate([[0], np.cumsum(spans)[:-1]]).astype(np.int64).tolist()
         total = sum(spans)
         if total >= 2**31:
             raise ValueError(f"Slicer: {total} voxels in all; at most 2**31 fit one slicer")
-        # One flat buffer per volume type, filled patient by patient in place (no per-patient
-        # copies to concatenate, which held every compact volume twice while building).
-        # Memory order (X, Z, Y): y (anterior, the beam's usual direction) is contiguous, so the
-        # gathers below, which run along depth, touch neighbouring memory.
-        flat_ct = torch.full((total,), AIR_HU, dtype=torch.float16)
-        orgs, sps, seeds = [], [], []
-        for p, keep, dim, off in zip(patients, keeps, dims, offs, strict=True):
-            _fill_box(flat_ct[off:], dim, p.ct, keep)
-            sp = p.spacing
-            first = np.array([a for a, _ in keep], dtype=np.float64)
-            orgs.append(p.origin + (first - 1) * sp)  # padded voxel 0: one before the first kept
-            sps.append(sp)
-            seeds.append(speckle_seed(p))
-        runs = list(zip(patients, keeps, dims, offs, spans, strict=True))
-        self.labels_packed = bool(packed_labels)
+        orgs = [c.origin for c in crops]
+        sps = [c.spacing for c in crops]
+        seeds = [c.seed for c in crops]
+        lims = [c.lim for c in crops]
+        # One flat buffer per volume type. Each crop covers its span whole, so torch.empty's
+        # pages are first touched by the copy, and each crop is released right after it: the
+        # build holds about one copy of the compact volumes, not two.
+        self.labels_packed = bool(packed_labels) and all(c.palette is not None for c in crops)
+        flat_ct = torch.empty((total,), dtype=torch.float16)
         if self.labels_packed:
-            nibbles = torch.zeros(total // 2, dtype=torch.uint8)
-            palette = torch.zeros(total // BLOCK * PALETTE, dtype=torch.uint8)
-            for p, keep, dim, off, span in runs:
-                packed = pack_labels(_label_run(p, keep, dim, span))
-                if packed is None:  # a block holds more than 16 labels: bytes for everyone
-                    self.labels_packed = False
-                    break
-                nibbles[off // 2 : (off + span) // 2] = packed[0]
-                palette[off // BLOCK * PALETTE : (off + span) // BLOCK * PALETTE] = packed[1]
-        if not self.labels_packed:
-            flat_lab = torch.zeros((total,), dtype=torch.uint8)
-            for p, keep, dim, off, span in runs:
-                flat_lab[off : off + span] = _label_run(p, keep, dim, span)
+            nibbles = torch.empty(total // 2, dtype=torch.uint8)
+            palette = torch.empty(total // BLOCK * PALETTE, dtype=torch.uint8)
+        else:
+            flat_lab = torch.empty((total,), dtype=torch.uint8)
+        for c, off, span in zip(crops, offs, spans, strict=True):
+            flat_ct[off : off + span] = c.ct
+            if self.labels_packed:
+                nibbles[off // 2 : (off + span) // 2] = c.labels
+                palette[off // BLOCK * PALETTE : (off + span) // BLOCK * PALETTE] = c.palette
+            else:
+                flat_lab[off : off + span] = c.label_bytes()
+            c.release()
         dev = self.device
         self._ct = flat_ct.to(dev)
         if self.labels_packed:

@@ -3,9 +3,6 @@ Patients, shared between envs of one process."""
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import sys
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -42,23 +39,6 @@ def _load(spec: int | str, spacing: float) -> Patient:
             raise
         raise type(e)(f"patient folder {spec}: {e}") from e
     return patient
-
-
-def return_freed_memory() -> None:
-    """Hand heap pages freed by loading patients back to the OS (glibc ``malloc_trim``; a
-    no-op elsewhere). Loading a phantom at 1 mm decodes and converts ~300 MB of temporaries;
-    glibc keeps most of those pages, ~40 MB per patient measured (resident memory per extra
-    navigation patient 115 -> 74 MB), so an env over many patients would grow by that much
-    per patient for nothing."""
-    if not sys.platform.startswith("linux"):
-        return
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name) if name else None
-    except OSError:
-        return
-    if libc is not None and hasattr(libc, "malloc_trim"):
-        libc.malloc_trim(0)
 
 
 def resolve_patients(specs: Sequence[PatientSpec] | PatientSpec, spacing: float) -> list[Patient]:

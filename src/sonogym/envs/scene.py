@@ -19,7 +19,8 @@ import torch
 
 from sonogym.anatomy import Patient, SkinSurface
 from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator, simulate_us
-from sonogym.envs.patients import resolve_patients, return_freed_memory
+from sonogym.envs.patients import resolve_patients
+from sonogym.memory import return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
 from sonogym.ultrasound.slicer import PatientCrop
 

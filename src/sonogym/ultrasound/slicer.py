@@ -42,6 +42,7 @@ import torch
 
 from sonogym.anatomy.patient import Patient
 from sonogym.checks import expect_all
+from sonogym.memory import return_freed_memory
 from sonogym.ultrasound._packed_labels import (
     BLOCK,
     PALETTE,
@@ -420,6 +421,7 @@ class Slicer:
             else:
                 flat_lab[off : off + span] = c.label_bytes()
             c.release()
+            return_freed_memory()  # the crop's heap pages back to the OS before the next copy
         dev = self.device
         self._ct = flat_ct.to(dev)
         if self.labels_packed:

@@ -275,8 +275,8 @@ class PatientCrop:
 
     @property
     def released(self) -> bool:
-        """True once a Slicer has taken the buffers."""
-        return self.ct.numel() == 0 and int(np.prod(self.dims)) > 0
+        """True once a Slicer has taken the buffers (a crop always spans at least one block)."""
+        return self.ct.numel() == 0
 
     def label_bytes(self) -> torch.Tensor:
         """The labels as one uint8 id per voxel (unpacked if packed)."""

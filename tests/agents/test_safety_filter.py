@@ -84,6 +84,30 @@ def test_search_filter_takes_the_nearest_action_predicted_safe():
         filter_actions(critic, obs, act, 0.5, mode="stop")
 
 
+def test_search_filter_leaves_the_policy_in_charge_outside_the_safe_set():
+    """A critic that wrongly rates "no motion" safe for a tip already outside the safe set held
+    such a drill still for the rest of its episode (IDT episode 74 of the image run, 5 % safe):
+    where info["safe"] is False the search filter keeps the policy's action."""
+
+    class StallingCritic(AxisCritic):
+        def q_values(self, obs, actions):  # only no motion is predicted safe, everywhere
+            return (actions.abs().sum(-1) > 0).float()
+
+    obs = torch.zeros(3, 1)
+    act = torch.tensor([[0.1, 0.0, 0.2, 0.0, 0.0, 0.05]]).repeat(3, 1)
+    in_safe_set = torch.tensor([True, False, True])
+    out, changed = filter_actions(StallingCritic(), obs, act, 0.5, "search", in_safe_set)
+    assert torch.equal(out[0], torch.zeros(6)) and torch.equal(out[2], torch.zeros(6))
+    assert torch.equal(out[1], act[1])  # outside the safe set: the policy's way back
+    assert changed.tolist() == [True, False, True]
+    # without the env's safety flag the critic alone decides (the stall this guards against)
+    alone, _ = filter_actions(StallingCritic(), obs, act, 0.5, "search")
+    assert torch.equal(alone, torch.zeros(3, 6))
+    # the paper's zero rule is kept as published: it zeroes wherever Q_c says so
+    zero, _ = filter_actions(StallingCritic(), obs, act, 0.5, "zero", in_safe_set)
+    assert torch.equal(zero, torch.zeros(3, 6))
+
+
 def test_ppo_sf_trains_cost_critic_and_eval_filters(tmp_path):
     torch.set_num_threads(1)
     run = tmp_path / "sf"
@@ -121,6 +145,17 @@ def test_ppo_sf_trains_cost_critic_and_eval_filters(tmp_path):
     x = pol.adapter.flatten(obs)
     mean = pol.model.act({"observations": x}, role="policy")[1]["mean_actions"]
     assert torch.equal(raw.act(obs, info), mean)  # the unfiltered policy is the PPO mean
+    # the env's safety flag reaches the filter: with a threshold that rejects the mean action
+    # but keeps a variation of it, the filter changes it inside the safe set only
+    box = pol.critic.action_space
+    cands = candidate_actions(mean, torch.tensor(box.low), torch.tensor(box.high))
+    q = pol.critic.q_values(x, cands).detach()
+    pol.threshold = float(q[1:].min(0).values.max())
+    assert (q[0] > pol.threshold).any()
+    inside = {**info, "safe": torch.ones_like(info["safe"])}
+    outside = {**info, "safe": torch.zeros_like(info["safe"])}
+    assert not torch.equal(pol.act(obs, inside), mean)
+    assert torch.equal(pol.act(obs, outside), mean)
 
     # the filter acts at test time only: eval can test the same run with other settings
     res = evaluate_run(run, trials=2, envs=2, controllers=("policy",), plot=False,

@@ -203,7 +203,9 @@ class RLPolicy(StatelessPolicy):
         if self.critic is not None:
             from sonogym.agents.safety_filter import filter_actions
 
-            action, _ = filter_actions(self.critic, x, action, self.threshold, self.filter_mode)
+            action, _ = filter_actions(
+                self.critic, x, action, self.threshold, self.filter_mode, info.get("safe")
+            )
         return action
 
 

@@ -170,6 +170,7 @@ def filter_actions(
     actions: torch.Tensor,
     threshold: float,
     mode: str = "search",
+    in_safe_set: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(filtered actions, (N,) bool mask of rows the filter changed).
 
@@ -179,7 +180,16 @@ def filter_actions(
     Q_c <= threshold; where no candidate is predicted safe, the policy's action stays (even no
     motion is predicted to cost 1, i.e. the drill is already outside the safe set, and the
     policy's own action is what brought it back in training; zeroing it there kept drills
-    outside for the rest of the episode). No host reads: selection is tensor ops."""
+    outside for the rest of the episode).
+
+    ``in_safe_set`` ((N,) bool, the env's ``info["safe"]``: the tracked tip against the plan),
+    ``mode="search"`` only: rows where it is False keep the policy's action. The filter guards
+    the safe set's boundary; once the tip is outside, the policy's action is the way back. The
+    critic alone does not always see that: it rated "no motion" safe for a tip already 2.6 mm
+    past the entrance plane and 6.9 mm off the axis, and the search filter held that drill
+    still there for 540 steps (runs/surg-img-w5-s0, 51,968 steps, IDT episode 74: 5 % safe;
+    the unfiltered policy went back into the corridor). The paper's ``"zero"`` rule is kept as
+    published. No host reads: selection is tensor ops."""
     check_filter_mode(mode)
     with torch.no_grad():
         if mode == "zero":
@@ -194,6 +204,9 @@ def filter_actions(
         safe = q <= threshold
         dist = (((cands - actions) / ((high - low) / 2)) ** 2).sum(-1)
         nearest_safe = torch.where(safe, dist, torch.full_like(dist, float("inf"))).argmin(0)
-        pick = torch.where(safe.any(0), nearest_safe, torch.zeros_like(nearest_safe))  # (N,)
+        guarded = safe.any(0)
+        if in_safe_set is not None:
+            guarded = guarded & in_safe_set.to(device=guarded.device, dtype=torch.bool)
+        pick = torch.where(guarded, nearest_safe, torch.zeros_like(nearest_safe))  # (N,)
         chosen = cands.gather(0, pick.view(1, -1, 1).expand(1, -1, cands.shape[-1]))[0]
         return chosen, pick != 0

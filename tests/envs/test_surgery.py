@@ -275,7 +275,7 @@ def test_volume_shows_the_vertebra_at_every_reset(simulator):
 
 
 def test_probe_placement_within_its_randomisation_range():
-    env = _env(32, obs_mode="state")
+    env = _env(32, obs_mode="labels")
     env.reset(seed=3)
     sc = env.scene
     x, z, yaw, tilt = sc.measured_probe_command()
@@ -294,6 +294,23 @@ def test_probe_placement_within_its_randomisation_range():
     pos = sc.probe_pos.clone()
     env.step(torch.ones(32, 6) * 0.1)
     assert torch.equal(sc.probe_pos, pos)
+
+
+def test_state_mode_skips_the_probe_settle_and_keeps_the_same_drill_episodes():
+    """The probe is not imaged in state mode, so it is not settled (it stays at its nominal
+    pose); its offset is still drawn, so drill starts and steps match an imaging mode's."""
+    state, labels = _env(6, obs_mode="state"), _env(6, obs_mode="labels")
+    nominal = state.scene.probe_pos.clone()
+    _, info_s = state.reset(seed=5)
+    _, info_l = labels.reset(seed=5)
+    assert torch.equal(state.scene.probe_pos, nominal)  # not settled
+    assert not torch.allclose(labels.scene.probe_pos, nominal, atol=1e-4)  # settled, offset
+    assert torch.equal(info_s["state"], info_l["state"])
+    act = torch.rand(6, 6, generator=torch.Generator().manual_seed(0)) * 0.4 - 0.2
+    for _ in range(3):
+        _, r_s, _, _, info_s = state.step(act)
+        _, r_l, _, _, info_l = labels.step(act)
+    assert torch.equal(info_s["state"], info_l["state"]) and torch.equal(r_s, r_l)
 
 
 def test_drill_starts_in_the_free_region():

@@ -80,7 +80,8 @@ The ``cpu`` training preset trains with w5 = 50 per rad (``SPEC.training.env_kwa
 the paper's 5 the tilt barely counts and state policies ended 4-5 deg off (docs/envs.md).
 
 **Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
-by IK. Drill: nominal joints (solved once per patient: tip 90 mm above p_l on the trajectory's
+by IK (``obs_mode="state"`` observes no image: there the offset is drawn, so every mode gets the
+same drill starts per seed, but the probe is not settled and stays at its nominal pose). Drill: nominal joints (solved once per patient: tip 90 mm above p_l on the trajectory's
 continuation, axis along z_G) + uniform joint noise +-[0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1] rad
 (the paper's; ``DATA_COLLECTION_JOINT_NOISE`` gives the paper's wider data-collection ranges);
 draws whose tip is not in C_free are redrawn (up to 20 times, then the nominal start). Envs
@@ -428,7 +429,11 @@ class SurgeryEnv(TorchVectorEnv):
     def _reset_idx(self, env_ids: torch.Tensor) -> None:
         cfg, sc, k = self.cfg, self.scene, len(env_ids)
         h = cfg.probe_offset_noise
-        sc.reset_probe(env_ids, self.uniform(-h, h, k, 2).float())
+        offset = self.uniform(-h, h, k, 2).float()  # drawn in every mode: same starts per seed
+        if cfg.obs_mode != "state":
+            # nothing observes the probe in state mode; its 40-step settle was half the CPU
+            # time of a state-mode training run
+            sc.reset_probe(env_ids, offset)
         # Drill start: nominal joints + noise; redraw starts whose tip is not in C_free.
         q = sc.drill_start_joints(env_ids, self._joint_noise(k))
         redraws = torch.zeros(k, dtype=torch.long, device=self.device)

@@ -81,9 +81,10 @@ the paper's 5 the tilt barely counts and state policies ended 4-5 deg off (docs/
 
 **Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
 by IK (``obs_mode="state"`` observes no image: there the offset is drawn, so every mode gets the
-same drill starts per seed, but the probe is not settled and stays at its nominal pose). Drill: nominal joints (solved once per patient: tip 90 mm above p_l on the trajectory's
-continuation, axis along z_G) + uniform joint noise +-[0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1] rad
-(the paper's; ``DATA_COLLECTION_JOINT_NOISE`` gives the paper's wider data-collection ranges);
+same drill starts per seed, but the probe is not settled and stays at its nominal pose). Drill:
+nominal joints (solved once per patient: tip 90 mm above p_l on the trajectory's continuation,
+axis along z_G) + uniform joint noise +-[0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1] rad (the paper's;
+``DATA_COLLECTION_JOINT_NOISE`` gives the paper's wider data-collection ranges);
 draws whose tip is not in C_free are redrawn (up to 20 times, then the nominal start). Envs
 spread over the configured patients (env i -> patient i % P).
 

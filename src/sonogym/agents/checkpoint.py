@@ -185,7 +185,8 @@ class RLPolicy(StatelessPolicy):
     """A trained run acting deterministically (the Gaussian's mean action) on an env's
     observations, flattened as in training; a ``ppo-sf`` run acts through its safety filter
     (``filter_mode`` "search": an action with Q_c > threshold becomes the nearest candidate
-    predicted safe; "zero": it becomes 0)."""
+    predicted safe, except where ``info["safe"]`` says the tip is already outside the safe set;
+    "zero": it becomes 0)."""
 
     def __init__(
         self, model, adapter: SkrlEnvAdapter, critic=None, threshold: float = 0.5,

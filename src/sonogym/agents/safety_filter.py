@@ -13,7 +13,9 @@ paper's w_i - delta), in one of two modes (``filter_mode``, a run setting that `
 
 * ``"zero"``, the paper's and the reference's: the whole action becomes 0 (no motion);
 * ``"search"`` (default, ours): the action becomes the nearest of a few variations of it
-  (:func:`candidate_actions`) that Q_c predicts safe, and stays where none is.
+  (:func:`candidate_actions`) that Q_c predicts safe, and stays where none is or where the
+  tracked tip is already outside the safe set (``info["safe"]``: the tracked drill against
+  the pre-operative plan, which a navigated system knows; the policy does not observe it).
 
 Why ours: the paper's rule stalls a deterministic policy for good. The image-trained PPO
 (runs/surg-img-sf-anneal-s0, 100 episodes, docs/results.md) crosses the corridor's entrance

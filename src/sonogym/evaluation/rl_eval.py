@@ -6,7 +6,7 @@ optionally overridden), runs ``trials`` episodes for each controller from the sa
 starts and returns the task's metrics (mean and std over episodes):
 
 * ``policy``: the run's newest checkpoint: an RL run deterministically (the Gaussian's mean
-  action; a ``ppo-sf`` run through its safety filter: actions with Q_c > threshold become 0),
+  action; a ``ppo-sf`` run through its safety filter, ``sonogym.agents.safety_filter``),
   an IL run as ``ILPolicy`` (ACT's temporal ensemble, Diffusion Policy's denoising);
 * ``expert``: the task's expert (navigation, surgery) or heuristic raster (reconstruction),
   from the privileged ``info``, as ``sonogym demo`` runs it;

@@ -239,3 +239,27 @@ def test_jacobian_matches_finite_differences(model):
         w = axis_angle_from_matrix(r_plus @ r_minus.transpose(-1, -2)) / (2 * h)
         assert torch.allclose(jac[:, :3, j], v, atol=1e-6), (model, j)
         assert torch.allclose(jac[:, 3:, j], w, atol=1e-6), (model, j)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_quat_from_matrix_inverts_matrix_from_quat_on_every_branch(dtype):
+    # each of the four formulas (largest of w, x, y, z) and the 180-degree rotations
+    from sonogym.geometry import matrix_from_quat, quat_from_matrix
+
+    g = torch.Generator().manual_seed(0)
+    q = torch.nn.functional.normalize(
+        torch.randn(4000, 4, generator=g, dtype=torch.float64), dim=-1
+    )
+    axes = torch.eye(4, dtype=torch.float64)  # identity and 180 deg about x, y, z
+    q = torch.cat([q, axes, torch.nn.functional.normalize(axes + 0.01, dim=-1)])
+    q = torch.where(q[:, :1] < 0, -q, q)
+    largest = q.abs().argmax(-1)
+    assert set(largest.tolist()) == {0, 1, 2, 3}
+    back = quat_from_matrix(matrix_from_quat(q).to(dtype)).double()
+    assert (back[:, 0] >= 0).all()
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    # q and -q are one rotation; w = 0 leaves the sign to the formula
+    err = torch.minimum((back - q).abs().amax(-1), (back + q).abs().amax(-1))
+    assert err.max() < tol
+    # batch dimensions pass through
+    assert quat_from_matrix(matrix_from_quat(q[:12]).reshape(2, 6, 3, 3)).shape == (2, 6, 4)

@@ -558,7 +558,10 @@ class ModelBasedSimulator:
         sel = self._buf("hu_idx", ct, torch.int32)  # free now
         torch.bitwise_right_shift(bits, _LUT_BITS, out=sel).bitwise_and_(_PAIR_MASK)
         torch.index_select(self._gauss_pairs, 0, sel.view(-1), out=field.view(torch.int64).view(-1))
-        field.mul_(amp.unsqueeze(-1))
+        # one strided multiply per component: broadcasting amp over the trailing pair is ~1.7x
+        # slower on CPU (100 images, 1 thread: 17.8 against 10.4 ms); same products
+        field[..., 0].mul_(amp)
+        field[..., 1].mul_(amp)
         field[..., 0].add_(refl)
         scratch = self._ws.get("field_tmp", (b, h, w, 2), torch.float32)
         _psf.blur_2d(field, *k["psf"], tmp=scratch, dims=(-3, -2))

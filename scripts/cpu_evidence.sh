@@ -23,7 +23,7 @@ $S train --task reconstruction --algo ppo $T --steps 4000 --out runs/recon-ppo-s
 for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 84000 \
       --out runs/surg-state-w5-s$s
-  cp -r runs/surg-state-w5-s$s runs/surg-state-w5-s$s-100k
+  [ -d runs/surg-state-w5-s$s-100k ] || cp -r runs/surg-state-w5-s$s runs/surg-state-w5-s$s-100k
   $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 100000 --resume \
       --out runs/surg-state-w5-s$s-100k
 done

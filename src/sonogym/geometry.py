@@ -22,8 +22,8 @@ def wrap_angle(a: torch.Tensor) -> torch.Tensor:
 
 # Every formula's terms, as one (..., 10) vector read from the flat (row-major) matrix:
 # [1 + t, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22,
-#  m21 - m12, m02 - m20, m10 - m01, m01 + m10, m02 + m20, m12 + m21]; the candidate for
-# formula k (4 q_k q) is row k of the symmetric 4x4 these fill.
+#  m21 - m12, m02 - m20, m10 - m01, m01 + m10, m02 + m20, m12 + m21]. They fill a symmetric
+# 4x4 whose row k is 4 q_k (w, x, y, z): formula k normalises row k.
 _CANDIDATE_TERMS = ((0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3))
 _QUAT_CONSTANTS: dict = {}
 

@@ -28,16 +28,18 @@ _CANDIDATE_TERMS = ((0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3))
 _QUAT_CONSTANTS: dict = {}
 
 
-def _quat_constants(device: torch.device) -> tuple[torch.Tensor, ...]:
-    if device not in _QUAT_CONSTANTS:
+def _quat_constants(device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
+    """Index and sign tensors of ``quat_from_matrix``, made once per device and dtype."""
+    key = (device, dtype)
+    if key not in _QUAT_CONSTANTS:
         long = {"dtype": torch.long, "device": device}
-        _QUAT_CONSTANTS[device] = (
+        _QUAT_CONSTANTS[key] = (
             torch.tensor([7, 2, 3, 1, 2, 5], **long),  # first operands of the off-diagonals
             torch.tensor([5, 6, 1, 3, 6, 7], **long),  # second operands
-            torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], device=device),  # - or +
+            torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], dtype=dtype, device=device),  # - or +
             torch.tensor(_CANDIDATE_TERMS, **long),
         )
-    return _QUAT_CONSTANTS[device]
+    return _QUAT_CONSTANTS[key]
 
 
 def quat_from_matrix(r: torch.Tensor) -> torch.Tensor:
@@ -46,14 +48,16 @@ def quat_from_matrix(r: torch.Tensor) -> torch.Tensor:
     Of the four standard formulas (dividing by 4|w|, 4|x|, 4|y| or 4|z|), each matrix uses
     the one with the largest denominator. The formulas are batched: a dozen tensor ops
     instead of ~60, as op overhead dominates at tens of matrices per call."""
-    first, second, sign, candidate = _quat_constants(r.device)
+    first, second, sign, candidate = _quat_constants(r.device, r.dtype)
     m = r.reshape(*r.shape[:-2], 9)
     m00, m11, m22 = m[..., 0:1], m[..., 4:5], m[..., 8:9]
     t = (m00 + m11) + m22
+    one_minus_m00 = 1 - m00
     diag = torch.cat(
-        [1 + t, ((1 + m00) - m11) - m22, ((1 - m00) + m11) - m22, ((1 - m00) - m11) + m22], -1
+        [1 + t, ((1 + m00) - m11) - m22, (one_minus_m00 + m11) - m22, (one_minus_m00 - m11) + m22],
+        -1,
     )
-    off = m.index_select(-1, first) + sign.to(r.dtype) * m.index_select(-1, second)
+    off = m.index_select(-1, first) + sign * m.index_select(-1, second)
     terms = torch.cat([diag, off], -1)
     q = normalize(torch.gather(terms, -1, candidate[diag.argmax(-1)]))
     return torch.where(q[..., :1] < 0, -q, q)

@@ -73,8 +73,17 @@ def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
 
     with pytest.raises(FileExistsError, match="resume"):
         _tiny("navigation", "ppo", run, steps=96)
+    # optimisers step all tensors at once (foreach), also after resuming a checkpoint saved
+    # without it (load_state_dict restores the saved flag)
+    state = torch.load(res.checkpoint, weights_only=False)
+    assert all(g["foreach"] is True for g in state["optimizer"]["param_groups"])
+    for g in state["optimizer"]["param_groups"]:
+        g["foreach"] = None
+    torch.save(state, res.checkpoint)
     res2 = _tiny("navigation", "ppo", run, steps=96, resume=True)
     assert res2.checkpoint.name == "agent_96.pt"
+    state = torch.load(res2.checkpoint, weights_only=False)
+    assert all(g["foreach"] is True for g in state["optimizer"]["param_groups"])
     assert json.loads((run / "config.json").read_text())["resumed_from"] == 64
     with pytest.raises(ValueError, match="cannot resume"):
         _tiny("navigation", "a2c", run, steps=128, resume=True)

@@ -152,3 +152,24 @@ def test_per_arm_base_poses_and_float64():
     assert torch.allclose(pos, expected)
     result = arm.track(q, pos + 0.01, arm.fk(q)[1], steps=20)
     assert bool(result.reached.all())
+
+
+def test_reused_frames_give_the_same_steps_and_a_changed_q_is_recomputed():
+    # ik_step keeps the FK of the joints it returns, for a loop that passes result.q back;
+    # the steps must equal fresh computations, and joints changed in place must not reuse it
+    arm = Arm(ArmConfig(model="franka_fr3"))
+    q, tp, tr = _well_conditioned_targets(arm, 16, seed=3, steps_away=4.0)
+    fresh = Arm(ArmConfig(model="franka_fr3"))
+    r = arm.ik_step(q, tp, tr)
+    for _ in range(4):
+        fresh._last_frames = None  # never reuses
+        expected = fresh.ik_step(r.q.clone(), tp, tr)
+        assert arm._last_frames is not None and arm._last_frames[0] is r.q
+        r = arm.ik_step(r.q, tp, tr)  # first iteration on the kept frames
+        for name in ("q", "pos", "rot", "pos_error", "rot_error"):
+            assert torch.equal(getattr(r, name), getattr(expected, name)), name
+    q_moved = r.q
+    q_moved[:, 3] += 0.2  # in place: same tensor object, new version
+    expected = fresh.ik_step(q_moved.clone(), tp, tr)
+    again = arm.ik_step(q_moved, tp, tr)
+    assert torch.equal(again.q, expected.q) and torch.equal(again.pos, expected.pos)

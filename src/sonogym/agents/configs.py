@@ -248,6 +248,8 @@ def resolve_train_config(
     given = {"num_envs": envs, "timesteps": steps, "net": net, "obs_downsample": obs_downsample}
     rl = dataclasses.replace(rl, **{k: v for k, v in given.items() if v is not None})
     rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, **lists_to_tuples(env_kwargs or {})})
+    if p.name == "cpu" and rl.env_kwargs.get("obs_mode") == "state" and defaults.ppo_cpu_state:
+        rl = dataclasses.replace(rl, ppo=defaults.ppo_cpu_state)
     return TrainConfig(
         task=task,
         algo=algo,
@@ -407,7 +409,7 @@ def build_agent(
             value_clip=p.value_clip,
             value_loss_scale=p.value_loss_scale,
         )
-    return cls(
+    agent = cls(
         models=models,
         memory=memory,
         observation_space=observation_space,
@@ -415,3 +417,19 @@ def build_agent(
         device=device,
         cfg=agent_cfg,
     )
+    use_multi_tensor_optimizers(agent)
+    return agent
+
+
+def use_multi_tensor_optimizers(agent) -> None:
+    """Switch every optimiser of ``agent`` to torch's multi-tensor (``foreach``) update.
+
+    Why: on CPU torch defaults to one small kernel per parameter tensor; the surgery state
+    network's Adam step took 3.2 ms that way and 1.6 ms with ``foreach``, with bit-identical
+    weights (CUDA already defaults to it). Call again after loading an optimiser's state:
+    ``load_state_dict`` restores the saved flag."""
+    for module in agent.checkpoint_modules.values():
+        if isinstance(module, torch.optim.Optimizer):
+            module.defaults["foreach"] = True
+            for group in module.param_groups:
+                group["foreach"] = True

@@ -52,6 +52,7 @@ from sonogym.agents.configs import (
     resolve_train_config,
     resume_config,
     to_jsonable,
+    use_multi_tensor_optimizers,
 )
 from sonogym.agents.networks import log_std_ceiling, make_models
 from sonogym.envs.registry import get_task, make_vec
@@ -353,6 +354,7 @@ def load_agent(agent, path: Path) -> None:
         raise ValueError(f"{path} lacks {missing}: was it written by another algorithm?")
     for name, module in agent.checkpoint_modules.items():
         module.load_state_dict(state[name])
+    use_multi_tensor_optimizers(agent)
 
 
 def _announce(cfg: TrainConfig, out: Path, start: int, log, agent, adapter, obs) -> None:

@@ -204,6 +204,8 @@ class Arm:
         )
         self._base = torch.eye(4, dtype=dtype, device=self.device)
         self._base_inv = self._base.clone()
+        # (joints, their version counter, all frames' FK) of the last ik_step's result
+        self._last_frames: tuple[torch.Tensor, int, torch.Tensor] | None = None
         if base_pose is not None:
             self.set_base_pose(base_pose)
 
@@ -293,9 +295,13 @@ class Arm:
         return q
 
     # -------------------------------------------------------------- kinematics
-    def _kin_base(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Tip pose and Jacobian in the base frame: pos (N,3), rot (N,3,3), J (N,6,7)."""
-        frames = self.chain.forward_kinematics_tensor(q)
+    def _kin_base(
+        self, q: torch.Tensor, frames: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Tip pose and Jacobian in the base frame: pos (N,3), rot (N,3,3), J (N,6,7).
+        ``frames``: every frame's FK at ``q`` when already known."""
+        if frames is None:
+            frames = self.chain.forward_kinematics_tensor(q)
         jac = self.chain.jacobian_tensor(q, all_transforms=frames)
         tip = frames[self._tip_index]
         return tip[:, :3, 3], tip[:, :3, :3], jac
@@ -362,6 +368,9 @@ class Arm:
             target_rot: (N, 3, 3) tip orientation targets in {P}.
             env_ids: the arms (rows of the base poses) the N rows belong to; None: all arms.
         """
+        # the frames of the joints this method returned last time, if ``q`` is them unchanged
+        cached = self._last_frames
+        frames = cached[2] if cached and cached[0] is q and cached[1] == q._version else None
         q = self._check_q(q, within_limits=True, env_ids=env_ids)
         base, base_inv = self._bases(env_ids)
         n = q.shape[0]
@@ -382,7 +391,8 @@ class Arm:
         err0 = None
         limited = torch.zeros(q.shape[0], dtype=torch.bool, device=q.device)
         for _ in range(self.config.ik_iterations):
-            pos, rot, jac = self._kin_base(q)
+            pos, rot, jac = self._kin_base(q, frames)
+            frames = None
             err = self.pose_error(pos, rot, tp, tr)
             if err0 is None:
                 err0 = err
@@ -397,8 +407,12 @@ class Arm:
             scale = ratio.amin(-1, keepdim=True).clamp(max=1)
             limited |= scale[:, 0] < 1.0
             q = torch.maximum(torch.minimum(q + dq * scale, hi), lo)
-        frames = self.chain.forward_kinematics_tensor(q)[self._tip_index]
-        pos, rot = frames[:, :3, 3], frames[:, :3, :3]
+        frames = self.chain.forward_kinematics_tensor(q)
+        # Kept for the next call: a control loop passes ``result.q`` straight back, and its
+        # first iteration needs these frames (one FK of three saved; the joints are within
+        # limits, so the next call's clamp leaves them bit-identical).
+        self._last_frames = (q, q._version, frames)
+        pos, rot = frames[self._tip_index][:, :3, 3], frames[self._tip_index][:, :3, :3]
         err = self.pose_error(pos, rot, tp, tr)
         return self._result(base, q, pos, rot, err, err0, tp, limited)
 

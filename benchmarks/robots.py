@@ -3,9 +3,10 @@
 Prints one table: for 128 and 1024 arms of each model (KUKA LBR Med 14 and Franka FR3, probe
 tool), on CPU (and on CUDA when present): FK time (tip and all link frames), FK + Jacobian time,
 one control step of ``Arm.ik_step`` (default ``ArmConfig``: 2 DLS iterations, then the FK of the
-reached pose; median and best) and the arm-steps per second the median gives, each over
---repeats runs after one warm-up. Targets are reachable poses a few control steps away, so the
-step does real work.
+reached pose; median and best), the same step in a control loop that passes ``result.q``
+back as the envs do (the arm then reuses the last step's FK: one of three saved), and the
+arm-steps per second the loop's median gives, each over --repeats runs after one warm-up.
+Targets are reachable poses a few control steps away, so the step does real work.
 
     python benchmarks/robots.py                    # defaults: 2 threads, 128 and 1024 arms
     python benchmarks/robots.py --threads 1        # one thread (e.g. under pytest -n 2)
@@ -64,8 +65,13 @@ def run(args) -> list[dict]:
                 def ik(arm=arm, q=q, tp=target_pos, tr=target_rot):
                     arm.ik_step(q, tp, tr)
 
-                (fk_s, _), (jac_s, _), (ik_s, ik_best) = (
-                    _time(f, args.repeats, sync) for f in (fk, jac, ik)
+                loop_q = [q]
+
+                def loop(arm=arm, tp=target_pos, tr=target_rot, loop_q=loop_q):
+                    loop_q[0] = arm.ik_step(loop_q[0], tp, tr).q
+
+                (fk_s, _), (jac_s, _), (ik_s, ik_best), (loop_s, _) = (
+                    _time(f, args.repeats, sync) for f in (fk, jac, ik, loop)
                 )
                 rows.append(
                     dict(
@@ -76,7 +82,8 @@ def run(args) -> list[dict]:
                         jacobian_ms=jac_s * 1e3,
                         ik_step_ms=ik_s * 1e3,
                         best_ik_step_ms=ik_best * 1e3,
-                        arm_steps_per_s=n / ik_s,
+                        loop_step_ms=loop_s * 1e3,
+                        arm_steps_per_s=n / loop_s,
                     )
                 )
     return rows
@@ -85,14 +92,14 @@ def run(args) -> list[dict]:
 def print_table(rows: list[dict], baseline: list[dict] | None, header: str) -> None:
     print(header)
     base = {(r["device"], r["model"], r["arms"]): r for r in baseline or []}
-    cols = "device  model        arms   FK ms  FK+Jac ms  IK step ms  (best)  arm-steps/s"
+    cols = "device  model        arms   FK ms  FK+Jac ms  IK step ms  (best)  loop ms  arm-steps/s"
     print(cols + ("  vs baseline" if baseline else ""))
     print("-" * (len(cols) + (13 if baseline else 0)))
     for r in rows:
         line = (
             f"{r['device']:<6}  {r['model']:<11} {r['arms']:>5}  {r['fk_ms']:>6.2f}  "
             f"{r['jacobian_ms']:>9.2f}  {r['ik_step_ms']:>10.2f} {r['best_ik_step_ms']:>7.2f}  "
-            f"{r['arm_steps_per_s']:>11.0f}"
+            f"{r.get('loop_step_ms', float('nan')):>7.2f}  {r['arm_steps_per_s']:>11.0f}"
         )
         b = base.get((r["device"], r["model"], r["arms"]))
         if b:

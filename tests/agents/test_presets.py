@@ -46,16 +46,8 @@ def test_cpu_preset_resolves_per_task():
     assert surg.rl.obs_downsample == 1  # the 3-D volume is 50 px deep already
     assert surg.params == get_task("surgery").training.ppo_cpu  # the task's CPU table
     assert surg.params != get_task("surgery").training.ppo
-    # state runs on the cpu preset take the task's state table (surgery: 2 epochs, not 5)
-    state = resolve_train_config("surgery", "ppo", preset="cpu", env_kwargs={"obs_mode": "state"})
-    assert state.params == get_task("surgery").training.ppo_cpu_state
-    assert (state.params.learning_epochs, surg.params.learning_epochs) == (2, 5)
     paper = resolve_train_config("surgery", "ppo", preset="paper")
     assert paper.params == get_task("surgery").training.ppo  # the paper's table
-    paper_state = resolve_train_config(
-        "surgery", "ppo", preset="paper", env_kwargs={"obs_mode": "state"}
-    )
-    assert paper_state.params == paper.params  # the paper preset keeps the paper's table
     assert (paper.rl.num_envs, paper.rl.net, paper.threads) == (128, "paper", None)
 
 

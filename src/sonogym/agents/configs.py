@@ -248,8 +248,6 @@ def resolve_train_config(
     given = {"num_envs": envs, "timesteps": steps, "net": net, "obs_downsample": obs_downsample}
     rl = dataclasses.replace(rl, **{k: v for k, v in given.items() if v is not None})
     rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, **lists_to_tuples(env_kwargs or {})})
-    if p.name == "cpu" and rl.env_kwargs.get("obs_mode") == "state" and defaults.ppo_cpu_state:
-        rl = dataclasses.replace(rl, ppo=defaults.ppo_cpu_state)
     return TrainConfig(
         task=task,
         algo=algo,

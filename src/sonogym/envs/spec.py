@@ -197,8 +197,6 @@ class TrainingDefaults:
     bounded_mean: bool = False  # policy mean squashed into the action box (tanh), see networks
     stagger_episodes: bool = False  # training: first episodes end at random steps (base env)
     ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
-    # ... and the one it trains ``obs_mode="state"`` runs with, if different again
-    ppo_cpu_state: PPOParams | None = None
     # env options the ``cpu`` preset trains with, where the paper's own do not train on a CPU
     # budget (documented deviations; the env's defaults stay the paper's, and so does ``paper``)
     env_kwargs_cpu: dict[str, Any] = field(default_factory=dict)

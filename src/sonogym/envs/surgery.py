@@ -646,11 +646,6 @@ SPEC = TaskSpec(
         ppo_cpu=PPOParams(
             rollouts=32, learning_epochs=5, mini_batches=4, learning_rate=3e-4, value_clip=0.1
         ),
-        # from the 9-D state, 2 epochs: the update was 47 % of a state run's time at 5, and the
-        # KL-adaptive rate held lr <= 1e-5 for most of the run (KL-limited, not data-limited)
-        ppo_cpu_state=PPOParams(
-            rollouts=32, learning_epochs=2, mini_batches=4, learning_rate=3e-4, value_clip=0.1
-        ),
         # w5 = 50 per rad, 10x the paper's (the env's default stays 5): at 5, 4 deg of tilt
         # costs 0.35, a 1.2 mm insertion's worth, and state policies ended in a 4-5 deg limit
         # cycle of saturated rotations (2 seeds of 3); at 50 they held < 1 deg (docs/results.md)

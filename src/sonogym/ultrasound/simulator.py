@@ -222,10 +222,11 @@ class ModelBasedSimulator:
         self.chunk_pixels = int(chunk_pixels)
         self._consts: dict[ProbeGeometry, dict] = {}
         self._gauss = gaussian_quantiles(_GAUSS_BITS, device=self.device)
-        # (g_re, g_im) pairs on a 256 x 256 grid of quantiles, as int64 words for one gather
+        # (g_re, g_im) pairs on a 256 x 256 grid of quantiles: row 0 the real parts, row 1 the
+        # imaginary ones, gathered by one index into the planar field
         q = gaussian_quantiles(_PAIR_BITS // 2)
-        pairs = torch.stack(torch.meshgrid(q, q, indexing="ij"), -1).reshape(-1, 2)
-        self._gauss_pairs = pairs.contiguous().view(torch.int64).view(-1).to(self.device)
+        pairs = torch.stack(torch.meshgrid(q, q, indexing="ij"), 0).reshape(2, -1)
+        self._gauss_pairs = pairs.contiguous().to(self.device)
         self._ws = Workspace(self.device)
 
     @property
@@ -550,22 +551,22 @@ class ModelBasedSimulator:
         refl_v.mul_(cos.view(b, hb, 1, w))
         refl.mul_(e_amp)
         # Complex scatterers T (1 + A_l V) (g_re + i g_im), attenuated, plus the reflections
-        # (real), blurred by the PSF as one interleaved (re, im) field.
+        # (real), blurred by the PSF as one planar (re, im) field: every pass below reads
+        # contiguous memory (interleaved pairs made |field|^2 2.1x and the multiply 4.7x slower
+        # on CPU, 100 images, 1 thread)
         amp, bits = self._scatterers(lab12, geom, k)
         amp.mul_(e_amp)
         b, h, w = ct.shape
-        field = self._ws.get("field", (b, h, w, 2), torch.float32)
-        sel = self._buf("hu_idx", ct, torch.int32)  # free now
-        torch.bitwise_right_shift(bits, _LUT_BITS, out=sel).bitwise_and_(_PAIR_MASK)
-        torch.index_select(self._gauss_pairs, 0, sel.view(-1), out=field.view(torch.int64).view(-1))
-        # one strided multiply per component: broadcasting amp over the trailing pair is ~1.7x
-        # slower on CPU (100 images, 1 thread: 17.8 against 10.4 ms); same products
-        field[..., 0].mul_(amp)
-        field[..., 1].mul_(amp)
-        field[..., 0].add_(refl)
-        scratch = self._ws.get("field_tmp", (b, h, w, 2), torch.float32)
-        _psf.blur_2d(field, *k["psf"], tmp=scratch, dims=(-3, -2))
-        re, im = field[..., 0], field[..., 1]
+        field = self._ws.get("field", (2, b, h, w), torch.float32)
+        sel = self._buf("hu_idx", ct, torch.int32).view(-1)  # free now
+        torch.bitwise_right_shift(bits.view(-1), _LUT_BITS, out=sel).bitwise_and_(_PAIR_MASK)
+        torch.index_select(self._gauss_pairs[0], 0, sel, out=field[0].view(-1))
+        torch.index_select(self._gauss_pairs[1], 0, sel, out=field[1].view(-1))
+        field.mul_(amp)
+        field[0].add_(refl)
+        scratch = self._ws.get("field_tmp", (2, b, h, w), torch.float32)
+        _psf.blur_2d(field, *k["psf"], tmp=scratch)
+        re, im = field[0], field[1]
         power = torch.mul(re, re, out=out).addcmul_(im, im)  # |field|^2 (complex abs is slow)
         if not display:
             power.sqrt_()

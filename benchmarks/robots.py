@@ -99,7 +99,7 @@ def print_table(rows: list[dict], baseline: list[dict] | None, header: str) -> N
         line = (
             f"{r['device']:<6}  {r['model']:<11} {r['arms']:>5}  {r['fk_ms']:>6.2f}  "
             f"{r['jacobian_ms']:>9.2f}  {r['ik_step_ms']:>10.2f} {r['best_ik_step_ms']:>7.2f}  "
-            f"{r.get('loop_step_ms', float('nan')):>7.2f}  {r['arm_steps_per_s']:>11.0f}"
+            f"{r['loop_step_ms']:>7.2f}  {r['arm_steps_per_s']:>11.0f}"
         )
         b = base.get((r["device"], r["model"], r["arms"]))
         if b:

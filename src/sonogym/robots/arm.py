@@ -412,7 +412,8 @@ class Arm:
         # first iteration needs these frames (one FK of three saved; the joints are within
         # limits, so the next call's clamp leaves them bit-identical).
         self._last_frames = (q, q._version, frames)
-        pos, rot = frames[self._tip_index][:, :3, 3], frames[self._tip_index][:, :3, :3]
+        tip = frames[self._tip_index]
+        pos, rot = tip[:, :3, 3], tip[:, :3, :3]
         err = self.pose_error(pos, rot, tp, tr)
         return self._result(base, q, pos, rot, err, err0, tp, limited)
 

@@ -57,7 +57,7 @@ def run(args) -> list[dict]:
                 target_pos, target_rot = arm.fk(q + step)
 
                 def fk(arm=arm, q=q):
-                    arm.chain.forward_kinematics_tensor(q)
+                    arm.kinematics.frames(q)
 
                 def jac(arm=arm, q=q):
                     arm.jacobian(q)

@@ -263,3 +263,47 @@ def test_quat_from_matrix_inverts_matrix_from_quat_on_every_branch(dtype):
     assert err.max() < tol
     # batch dimensions pass through
     assert quat_from_matrix(matrix_from_quat(q[:12]).reshape(2, 6, 3, 3)).shape == (2, 6, 4)
+
+
+# ------------------------------------------------------- specialised serial-chain kinematics
+@pytest.mark.parametrize("model", ["kuka_med14", "franka_fr3"])
+@pytest.mark.parametrize("tool", [PROBE_TOOL, DRILL_TOOL])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_serial_chain_kinematics_equal_pytorch_kinematics_bit_for_bit(model, tool, dtype):
+    """The arms' FK and Jacobian come from ``SerialChainKinematics``; they must equal
+    pytorch-kinematics' generic ones exactly, so trained runs reproduce across the switch."""
+    arm = Arm(ArmConfig(model=model, tool=tool), dtype=dtype)
+    q = arm.random_joints(3000, torch.Generator().manual_seed(11))
+    generic = arm.chain.forward_kinematics_tensor(q)
+    frames = arm.kinematics.frames(q)
+    assert torch.equal(frames, generic)
+    assert torch.equal(
+        arm.kinematics.jacobian(frames), arm.chain.jacobian_tensor(q, all_transforms=generic)
+    )
+
+
+def _two_joint_urdf(second_joint_type: str) -> str:
+    links = "".join(f'<link name="l{i}"/>' for i in range(3))
+    joints = (
+        '<joint name="j0" type="revolute"><parent link="l0"/><child link="l1"/>'
+        '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+        f'<joint name="j1" type="{second_joint_type}"><parent link="l1"/><child link="l2"/>'
+        '<origin xyz="0 0 0.1"/><axis xyz="1 0 0"/>'
+        '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+    )
+    return f'<robot name="r">{links}{joints}</robot>'
+
+
+def test_serial_chain_kinematics_rejects_what_it_does_not_model():
+    import pytorch_kinematics as pk
+
+    from sonogym.robots.serial_chain import SerialChainKinematics
+
+    revolute = pk.build_serial_chain_from_urdf(_two_joint_urdf("revolute"), "l2")
+    q = torch.tensor([[0.3, -0.7]])
+    assert torch.equal(
+        SerialChainKinematics(revolute).frames(q), revolute.forward_kinematics_tensor(q)
+    )
+    prismatic = pk.build_serial_chain_from_urdf(_two_joint_urdf("prismatic"), "l2")
+    with pytest.raises(ValueError, match="revolute and fixed joints"):
+        SerialChainKinematics(prismatic)

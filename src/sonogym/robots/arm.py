@@ -7,7 +7,8 @@ faster than the joints allow. The image is then sliced from the pose the arm act
 
 Frames: every pose an ``Arm`` takes or returns is in the patient frame {P} (metres); the arm's
 base pose in {P} is given at construction (see ``sonogym.robots.placement``). Kinematics are
-computed in the base frame by pytorch-kinematics and mapped to {P}.
+computed in the base frame, on pytorch-kinematics' parsed chain by ``SerialChainKinematics``
+(same results, fewer ops), and mapped to {P}.
 
 One control step (``Arm.ik_step``) stands in for the reference's DLS step + PD tracking at
 60 Hz: ``ArmConfig.ik_iterations`` weighted damped-least-squares iterations
@@ -51,6 +52,7 @@ import torch
 from sonogym.checks import expect_all
 from sonogym.geometry import axis_angle_from_matrix, invert_pose
 from sonogym.robots.description import arm_model, assemble_urdf
+from sonogym.robots.serial_chain import SerialChainKinematics
 from sonogym.robots.tools import PROBE_TOOL, ToolConfig
 
 #: Joint speed limits of the reference implementation's IsaacLab actuators (rad/s): 2.175 for
@@ -152,6 +154,7 @@ class Arm:
         urdf = assemble_urdf(config.model, config.tool)
         chain = pk.build_serial_chain_from_urdf(urdf, config.tool.tip_link)
         self.chain = chain.to(dtype=dtype, device=self.device)
+        self.kinematics = SerialChainKinematics(self.chain)
         self.joint_names: list[str] = self.chain.get_joint_parameter_names()
         n = len(self.joint_names)
         lo, hi = self.chain.get_joint_limits()
@@ -301,8 +304,8 @@ class Arm:
         """Tip pose and Jacobian in the base frame: pos (N,3), rot (N,3,3), J (N,6,7).
         ``frames``: every frame's FK at ``q`` when already known."""
         if frames is None:
-            frames = self.chain.forward_kinematics_tensor(q)
-        jac = self.chain.jacobian_tensor(q, all_transforms=frames)
+            frames = self.kinematics.frames(q)
+        jac = self.kinematics.jacobian(frames)
         tip = frames[self._tip_index]
         return tip[:, :3, 3], tip[:, :3, :3], jac
 
@@ -324,7 +327,7 @@ class Arm:
             index = self._frame_index[link]
         else:
             raise ValueError(f"unknown link {link!r}; known: {self.link_names}")
-        pose = self.chain.forward_kinematics_tensor(q)[index]
+        pose = self.kinematics.frames(q)[index]
         return self._apply(self._bases(env_ids)[0], pose[:, :3, 3], pose[:, :3, :3])
 
     def jacobian(self, q: torch.Tensor) -> torch.Tensor:
@@ -407,7 +410,7 @@ class Arm:
             scale = ratio.amin(-1, keepdim=True).clamp(max=1)
             limited |= scale[:, 0] < 1.0
             q = torch.maximum(torch.minimum(q + dq * scale, hi), lo)
-        frames = self.chain.forward_kinematics_tensor(q)
+        frames = self.kinematics.frames(q)
         # Kept for the next call: a control loop passes ``result.q`` straight back, and its
         # first iteration needs these frames (one FK of three saved; the joints are within
         # limits, so the next call's clamp leaves them bit-identical).

@@ -148,7 +148,7 @@ def test_scatterer_statistics():
         rows = torch.tensor([[0.0, 0.5e-3, 0.0]] * 4, dtype=torch.float64)
         cols = torch.tensor([[0.5e-3, 0.0, 0.0]] * 4, dtype=torch.float64)
         mix = torch.tensor([1, 2, 3, 4])
-        amp, _ = sim._scatterers(lab12, (o, rows, cols, mix, mix), k)
+        amp, _ = sim._scatterers(lab12, (o, rows, cols, mix, mix), k, sim._chunks.workspaces[0])
         t = SONOGYM_TISSUES[tissue]
         density = 0.5 * (1 + math.erf(t.mu1 / math.sqrt(2)))
         on = amp[amp > 0]

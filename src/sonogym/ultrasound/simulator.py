@@ -56,7 +56,8 @@ the skin, whose voxel may read air; real probes press a few mm into the skin).
 Performance: each step is one or a few full-array passes; table lookups are single gathers
 ``torch.take(table, labels)``; the speckle is a hash (speckle.py); PSFs are shifted multiply-adds
 (psf.py); on CPU the batch is processed in chunks of ``chunk_pixels`` so the temporaries stay in
-cache.
+cache, and with more than one torch thread the chunks run on that many threads at once
+(``ChunkRunner``; same images).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ from dataclasses import dataclass, field
 import torch
 
 from sonogym.ultrasound import psf as _psf
-from sonogym.ultrasound._workspace import Workspace
+from sonogym.ultrasound._workspace import ChunkRunner, Workspace
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.slicer import Slices
 from sonogym.ultrasound.speckle import gaussian_quantiles, lattice_bits, seed_mix
@@ -198,6 +199,11 @@ def _large_scale_block(h: int, w: int, dz: float, dx: float, limit: float = 2.5e
     return max(k for k in range(1, g + 1) if g % k == 0 and (k == 1 or k * max(dz, dx) <= limit))
 
 
+def _buf(ws: Workspace, name: str, like: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
+    """Scratch buffer ``name`` of ``like``'s shape from the chunk's workspace."""
+    return ws.get(name, tuple(like.shape), dtype)
+
+
 class ModelBasedSimulator:
     """Model-based ultrasound simulator (``UltrasoundSimulator`` protocol).
 
@@ -227,7 +233,7 @@ class ModelBasedSimulator:
         q = gaussian_quantiles(_PAIR_BITS // 2)
         pairs = torch.stack(torch.meshgrid(q, q, indexing="ij"), 0).reshape(2, -1)
         self._gauss_pairs = pairs.contiguous().to(self.device)
-        self._ws = Workspace(self.device)
+        self._chunks = ChunkRunner(self.device)  # scratch buffers, one set per worker thread
 
     @property
     def nbytes(self) -> int:
@@ -238,7 +244,7 @@ class ModelBasedSimulator:
             for v in k.values()
             if isinstance(v, torch.Tensor)
         )
-        return tables + self._ws.nbytes
+        return tables + self._chunks.nbytes
 
     # ---------------------------------------------------------------- tables
     def _scatter_lut(self, table: TissueTable, gain: float) -> torch.Tensor:
@@ -357,21 +363,18 @@ class ModelBasedSimulator:
         chunk = (
             self._sonogym_chunk if isinstance(self.model, SonoGymModel) else self._physical_chunk
         )
-        for s in range(0, b_all, step):
-            sl = slice(s, min(b_all, s + step))
+
+        def run(sl: slice, ws: Workspace) -> None:
             geom = (origin[sl], row[sl], col[sl], mix[sl], mix_ls[sl])
-            chunk(ct[sl], lab[sl], geom, k, display, flat[sl])
+            chunk(ct[sl], lab[sl], geom, k, display, flat[sl], ws)
+
+        self._chunks.run(run, [slice(s, min(b_all, s + step)) for s in range(0, b_all, step)])
         return out
 
     # -------------------------------------------------------------- shared
-    def _buf(
-        self, name: str, like: torch.Tensor, dtype: torch.dtype = torch.float32
-    ) -> torch.Tensor:
-        return self._ws.get(name, tuple(like.shape), dtype)
-
-    def _labels(self, lab8: torch.Tensor, k: dict) -> torch.Tensor:
+    def _labels(self, lab8: torch.Tensor, k: dict, ws: Workspace) -> torch.Tensor:
         """int32 labels (workspace) with air in the gel band replaced by GEL."""
-        lab = self._buf("lab", lab8, torch.int32)
+        lab = _buf(ws, "lab", lab8, torch.int32)
         lab.copy_(lab8)
         g = k["gel_rows"]
         if g:
@@ -384,7 +387,7 @@ class ModelBasedSimulator:
         return (lab[:, :g] == GEL).logical_or_(ct[:, :g] < self.model.gel_hu_threshold)
 
     def _scatterers(
-        self, lab12: torch.Tensor, geom: tuple, k: dict
+        self, lab12: torch.Tensor, geom: tuple, k: dict, ws: Workspace
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scatterer amplitude T (1 + A_l V) per pixel (workspace "amp"), and the pixels' 32
         random bits (workspace "bits"; bits 0-11 are used here). ``lab12``: labels << 12."""
@@ -392,13 +395,13 @@ class ModelBasedSimulator:
         m = self.model
         origin, row, col, mix, mix_ls = geom
         b, h, w = lab.shape
-        bits = self._buf("bits", lab, torch.int32)
-        key = self._buf("key", lab, torch.int64)
+        bits = _buf(ws, "bits", lab, torch.int32)
+        key = _buf(ws, "key", lab, torch.int64)
         lattice_bits(origin, row, col, h, w, m.speckle_cell, mix, out=bits, tmp=key)
         idx = key.view(torch.int32).view(-1)[: lab.numel()].view(lab.shape)  # free scratch
         torch.bitwise_and(bits, _LUT_MASK, out=idx)
         idx.bitwise_or_(lab12)
-        amp = self._buf("amp", lab, torch.float32)
+        amp = _buf(ws, "amp", lab, torch.float32)
         torch.index_select(k["lut"], 0, idx.view(-1), out=amp.view(-1))
         if m.large_scale_amplitude:
             kb = k["ls_block"]
@@ -419,23 +422,24 @@ class ModelBasedSimulator:
         k: dict,
         display: bool,
         out: torch.Tensor,
+        ws: Workspace,
     ) -> None:
         m: SonoGymModel = self.model  # type: ignore[assignment]
-        lab = self._labels(lab8, k)
+        lab = self._labels(lab8, k, ws)
         g = k["gel_rows"]
         # Attenuation, inclusive of the current pixel: A_B = exp(-sum (alpha - beta_B) dz).
-        a_b = self._buf("a", ct)
+        a_b = _buf(ws, "a", ct)
         torch.index_select(k["att_neg"], 0, lab.view(-1), out=a_b.view(-1))
         a_b.cumsum_(1).clamp_(min=-_MAX_EXPONENT).exp_()
         # Reflection rho = ((Zu - Z) / (Zu + Z + eps))^2 with Z ~ clipped HU (see _constants);
         # reflect padding: the row above row 0 is row 1. Gel reads as water (0 HU).
-        x = self._buf("x", ct)
+        x = _buf(ws, "x", ct)
         lo, hi = m.ct_range
         torch.clamp(ct, lo, hi, out=x).sub_(lo)
         if g:
             x[:, :g].masked_fill_(self._gel_mask(ct, lab, g), -lo)
-        rho = self._buf("r", ct)
-        tmp = self._buf("t", ct)
+        rho = _buf(ws, "r", ct)
+        tmp = _buf(ws, "t", ct)
         if x.shape[1] > 1:
             torch.sub(x[:, :-1], x[:, 1:], out=rho[:, 1:])
             torch.sub(x[:, 1], x[:, 0], out=rho[:, 0])
@@ -451,7 +455,7 @@ class ModelBasedSimulator:
         rho.mul_(a_b).mul_(k["ar_profile"]).clamp_(max=m.reflection_clip)
         refl = _psf.blur_2d(rho, *k["psf_r"], tmp=tmp)
         # B = A_B (S (*) PSF_B).
-        amp, _ = self._scatterers(lab.bitwise_left_shift_(_LUT_BITS), geom, k)
+        amp, _ = self._scatterers(lab.bitwise_left_shift_(_LUT_BITS), geom, k, ws)
         back = _psf.blur_2d(amp, *k["psf_b"], tmp=tmp)
         back.mul_(a_b)
         if m.i0 != 1.0:
@@ -471,37 +475,38 @@ class ModelBasedSimulator:
         k: dict,
         display: bool,
         out: torch.Tensor,
+        ws: Workspace,
     ) -> None:
         m: PhysicalModel = self.model  # type: ignore[assignment]
-        lab = self._labels(lab8, k)
+        lab = self._labels(lab8, k, ws)
         g = k["gel_rows"]
         z_gel = k["z_gel"]
         flat_lab = lab.view(-1)
         # Impedance: the tissue's literature value, refined by the CT along the CT -> impedance
         # curve m: Z = Z_tissue * m(HU) / m(HU_tissue). Across an interface's partial-volume
         # ramp the impedance then follows the (smooth, trilinear) CT, not the label staircase.
-        hu_idx = self._buf("hu_idx", ct, torch.int32)
-        z = self._buf("z", ct)
-        tmp = self._buf("t", ct)
+        hu_idx = _buf(ws, "hu_idx", ct, torch.int32)
+        z = _buf(ws, "z", ct)
+        tmp = _buf(ws, "t", ct)
         torch.add(ct, _HU_OFFSET + 0.5, out=z).clamp_(0, _HU_LUT - 1)
         hu_idx.copy_(z)  # rounds to the nearest HU
         if g:  # gel and partial-volume air at the skin read as water
             hu_idx[:, :g].masked_fill_(self._gel_mask(ct, lab, g), _HU_OFFSET)
-        lab12 = torch.bitwise_left_shift(lab, _LUT_BITS, out=self._buf("lab12", ct, torch.int32))
+        lab12 = torch.bitwise_left_shift(lab, _LUT_BITS, out=_buf(ws, "lab12", ct, torch.int32))
         torch.index_select(k["z_lut"], 0, hu_idx.bitwise_or_(lab12).view(-1), out=z.view(-1))
         # Amplitude reflection R = (Z(y) - Z(y-1)) / (Z(y) + Z(y-1)) near label boundaries (G,
         # widened to the rows of the CT ramp); gel above row 0.
-        refl = self._buf("r", ct)
+        refl = _buf(ws, "r", ct)
         torch.sub(z[:, 1:], z[:, :-1], out=refl[:, 1:])
         torch.sub(z[:, 0], z_gel, out=refl[:, 0])
         torch.add(z[:, 1:], z[:, :-1], out=tmp[:, 1:])
         torch.add(z[:, 0], z_gel, out=tmp[:, 0])
         refl.div_(tmp)
-        edge = self._buf("edge", ct, torch.bool)
+        edge = _buf(ws, "edge", ct, torch.bool)
         torch.ne(lab[:, 1:], lab[:, :-1], out=edge[:, 1:])
         torch.ne(lab[:, 0], GEL, out=edge[:, 0])
         h = ct.shape[1]
-        near = self._buf("near", ct, torch.bool)
+        near = _buf(ws, "near", ct, torch.bool)
         near.copy_(edge)
         for d in range(1, min(k["ramp_rows"], h - 1) + 1):
             near[:, : h - d].logical_or_(edge[:, d:])
@@ -511,7 +516,7 @@ class ModelBasedSimulator:
         # the partial reflections over ``interface_width`` gives back a sharp interface's |R|.
         rb = k["ramp_box"]
         if rb > 1:
-            refl = _psf.blur_1d(refl, [1.0] * rb, -2, out=self._buf("rbox", ct))
+            refl = _psf.blur_1d(refl, [1.0] * rb, -2, out=_buf(ws, "rbox", ct))
         # Incidence: the interface normal from the CT gradient (the CT is smooth where the label
         # map is a voxel staircase), on a grid of ~1 mm blocks (the resampled CT has no finer
         # detail): forward axial difference, lateral central difference of the two rows' sum;
@@ -520,9 +525,9 @@ class ModelBasedSimulator:
         c = ct[:, ::kb, ::kb]
         b, h, w = ct.shape
         hb, wb = c.shape[1], c.shape[2]
-        gz = self._ws.get("gz", (b, hb, wb), torch.float32)
-        gs = self._ws.get("gs", (b, hb, wb), torch.float32)
-        gx = self._ws.get("gxb", (b, hb, wb), torch.float32)
+        gz = ws.get("gz", (b, hb, wb), torch.float32)
+        gs = ws.get("gs", (b, hb, wb), torch.float32)
+        gx = ws.get("gxb", (b, hb, wb), torch.float32)
         torch.sub(c[:, 1:], c[:, :-1], out=gz[:, :-1])
         gz[:, -1] = 0.0
         torch.add(c[:, 1:], c[:, :-1], out=gs[:, :-1])
@@ -554,17 +559,17 @@ class ModelBasedSimulator:
         # (real), blurred by the PSF as one planar (re, im) field: every pass below reads
         # contiguous memory (interleaved pairs made |field|^2 2.1x and the multiply 4.7x slower
         # on CPU, 100 images, 1 thread)
-        amp, bits = self._scatterers(lab12, geom, k)
+        amp, bits = self._scatterers(lab12, geom, k, ws)
         amp.mul_(e_amp)
         b, h, w = ct.shape
-        field = self._ws.get("field", (2, b, h, w), torch.float32)
-        sel = self._buf("hu_idx", ct, torch.int32).view(-1)  # free now
+        field = ws.get("field", (2, b, h, w), torch.float32)
+        sel = _buf(ws, "hu_idx", ct, torch.int32).view(-1)  # free now
         torch.bitwise_right_shift(bits.view(-1), _LUT_BITS, out=sel).bitwise_and_(_PAIR_MASK)
         torch.index_select(self._gauss_pairs[0], 0, sel, out=field[0].view(-1))
         torch.index_select(self._gauss_pairs[1], 0, sel, out=field[1].view(-1))
         field.mul_(amp)
         field[0].add_(refl)
-        scratch = self._ws.get("field_tmp", (2, b, h, w), torch.float32)
+        scratch = ws.get("field_tmp", (2, b, h, w), torch.float32)
         _psf.blur_2d(field, *k["psf"], tmp=scratch)
         re, im = field[0], field[1]
         power = torch.mul(re, re, out=out).addcmul_(im, im)  # |field|^2 (complex abs is slow)

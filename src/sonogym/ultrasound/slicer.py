@@ -28,7 +28,9 @@ every image plane, on the sides where the box cuts the volume.
 
 Gathers run depth-first along the volume's contiguous axis (y, the beam's usual direction) in
 chunks of envs that fit in cache, with int32 indices and ``index_select`` (3-5x faster than
-``take``/advanced indexing on CPU), and all temporaries live in reused buffers.
+``take``/advanced indexing on CPU), and all temporaries live in reused buffers. With more than
+one torch thread on CPU the chunks run on that many threads at once (``ChunkRunner``; same
+images).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from sonogym.ultrasound._packed_labels import (
     pack_labels,
     unpack_labels,
 )
-from sonogym.ultrasound._workspace import Workspace
+from sonogym.ultrasound._workspace import ChunkRunner, Workspace
 from sonogym.ultrasound.probe import ProbeGeometry
 
 #: Value of anything outside a patient's volume.
@@ -441,7 +443,7 @@ class Slicer:
         self._seeds = torch.tensor(seeds, dtype=torch.int64, device=dev)
         self._lim = torch.tensor(np.array(lims), dtype=torch.float64, device=dev)  # (P, 2, 3)
         self.cropped = bool(np.isfinite(np.array(lims)).any())
-        self._ws = Workspace(dev)
+        self._chunks = ChunkRunner(dev)  # scratch buffers, one set per worker thread
         min_spacing = min(float(s.min()) for s in sps)
         pr = self.probe
         if self.upsample:
@@ -468,7 +470,7 @@ class Slicer:
             labels = self._nibbles.numel() + self._palette.numel()
         else:
             labels = self._lab.numel()
-        return self._ct.numel() * 2 + labels + self._ws.nbytes
+        return self._ct.numel() * 2 + labels + self._chunks.nbytes
 
     def default_patient_index(self, n: int) -> torch.Tensor:
         """Round-robin assignment of n envs to the patients (env i -> patient i % P)."""
@@ -551,9 +553,12 @@ class Slicer:
         kz, kx = self.block
         per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
         step = max(1, self.chunk_samples // per_env)
-        for s in range(0, n, step):  # chunks of envs: bounded scratch, cache-sized on CPU
-            c = slice(s, min(n, s + step))
-            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c])
+
+        def run(c: slice, ws: Workspace) -> None:
+            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws)
+
+        # chunks of envs: bounded scratch, cache-sized on CPU
+        self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
         return Slices(ct, lab, origin, row_step, col_step, self._seeds[pidx], pidx, pr)
 
     def _sample(
@@ -564,8 +569,8 @@ class Slicer:
         pidx: torch.Tensor,
         ct_out: torch.Tensor,
         lab_out: torch.Tensor,
+        ws: Workspace,
     ) -> None:
-        ws = self._ws
         n, e, h, w = ct_out.shape
         kz, kx = self.block
         hc, wc = -(-h // kz), -(-w // kx)

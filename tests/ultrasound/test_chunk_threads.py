@@ -11,7 +11,7 @@ import torch
 from us_synthetic import block_patient, random_poses
 
 from sonogym.ultrasound import ModelBasedSimulator, Slicer
-from sonogym.ultrasound._workspace import ChunkRunner
+from sonogym.ultrasound._workspace import MAX_CHUNK_WORKERS, ChunkRunner
 
 
 @pytest.fixture
@@ -69,6 +69,10 @@ def test_chunks_cover_everything_once_and_errors_reach_the_caller(two_threads):
 
     runner.run(nested, [0, 1])
     assert inner == [1, 1]  # a call from inside a chunk runs serially
+
+    torch.set_num_threads(32)  # scratch per worker: many cores still fan out to at most 8
+    assert runner.workers(100) == MAX_CHUNK_WORKERS == 8 and runner.workers(3) == 3
+    assert ChunkRunner(torch.device("meta")).workers(100) == 1  # only CPU fans out
 
 
 def _child_runs(queue) -> None:

@@ -53,40 +53,46 @@ class Workspace:
         self._bufs.clear()
 
 
-_pools: dict[int, ThreadPoolExecutor] = {}
-_pools_lock = threading.Lock()
+#: Most threads one call fans out to: each holds its own scratch (the simulator's is ~40 MB),
+#: and two cores were what we could measure (benchmarks/README.md, "Ultrasound").
+MAX_CHUNK_WORKERS = 8
+
+_pool: ThreadPoolExecutor | None = None
+_pool_lock = threading.Lock()
 _local = threading.local()  # .worker is True inside a chunk worker
 
 
-def _forget_pools_after_fork() -> None:
+def _forget_pool_after_fork() -> None:
     # a forked child has none of the parent's threads: a pool inherited from the parent would
     # queue work that never runs, so the child starts its own
-    global _pools_lock
-    _pools.clear()
-    _pools_lock = threading.Lock()
+    global _pool, _pool_lock
+    _pool = None
+    _pool_lock = threading.Lock()
 
 
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pools_after_fork)
+    os.register_at_fork(after_in_child=_forget_pool_after_fork)
 
 
-def _pool(workers: int) -> ThreadPoolExecutor:
-    """A process-wide pool of ``workers`` threads (created once per size)."""
-    with _pools_lock:
-        pool = _pools.get(workers)
-        if pool is None:
-            pool = _pools[workers] = ThreadPoolExecutor(workers, "sonogym-chunks")
-        return pool
+def _helpers() -> ThreadPoolExecutor:
+    """The process-wide pool of helper threads (started on demand, at most
+    ``MAX_CHUNK_WORKERS - 1``; the caller's thread is the other worker)."""
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(MAX_CHUNK_WORKERS - 1, "sonogym-chunks")
+        return _pool
 
 
 class ChunkRunner:
     """Runs ``fn(chunk, workspace)`` over a list of independent chunks.
 
-    On CPU with T = ``torch.get_num_threads()`` > 1, the chunks are spread over T threads (the
-    caller's and T - 1 pool threads; chunk i on thread i mod T), each with its own
-    ``Workspace``; otherwise, and on other devices, they run in order on the caller's thread
-    with one workspace. Chunks must write disjoint outputs and read only shared inputs.
-    A call made from inside a chunk runs serially (no nested fan-out, so no pool deadlock).
+    On CPU with T = min(``torch.get_num_threads()``, ``MAX_CHUNK_WORKERS``, chunks) > 1, the
+    chunks are spread over T threads (the caller's and T - 1 helper threads; chunk i on thread
+    i mod T), each with its own ``Workspace``; otherwise, and on other devices, they run in
+    order on the caller's thread with one workspace. Chunks must write disjoint outputs and
+    read only shared inputs. A call made from inside a chunk runs serially (no nested fan-out,
+    so no pool deadlock). Like a ``Workspace``, one runner serves one caller at a time.
     """
 
     def __init__(self, device: torch.device) -> None:
@@ -105,7 +111,7 @@ class ChunkRunner:
         """Threads a call with ``chunks`` chunks uses."""
         if self.device.type != "cpu" or getattr(_local, "worker", False):
             return 1
-        return max(1, min(torch.get_num_threads(), chunks))
+        return max(1, min(torch.get_num_threads(), MAX_CHUNK_WORKERS, chunks))
 
     def run(self, fn: Callable[[C, Workspace], None], chunks: Sequence[C]) -> None:
         t = self.workers(len(chunks))
@@ -124,7 +130,7 @@ class ChunkRunner:
             finally:
                 _local.worker = False
 
-        futures = [_pool(t - 1).submit(share, w) for w in range(1, t)]
+        futures = [_helpers().submit(share, w) for w in range(1, t)]
         try:
             share(0)
         finally:

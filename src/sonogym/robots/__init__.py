@@ -1,7 +1,8 @@
 """Robot arms: URDF descriptions, batched kinematics, differential IK, probe and drill tools.
 
 Kinematic stand-ins for the paper's KUKA LBR Med 14 and Franka FR3 (see ``arm``): batched
-forward kinematics and Jacobians through pytorch-kinematics, damped-least-squares IK with
+forward kinematics and Jacobians on pytorch-kinematics' parsed chains (evaluated by
+``serial_chain.SerialChainKinematics``), damped-least-squares IK with
 joint position and velocity limits at the 60 Hz control rate, a probe held on the skin
 (``SurfaceController``) and base placements relative to the patient (``placement``).
 Everything is in the patient frame {P}, metres and radians, batch-first.

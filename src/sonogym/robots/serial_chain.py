@@ -43,6 +43,8 @@ class SerialChainKinematics:
             )
         self.num_frames = n_frames
         self.revolute_frames = [f for f, t in enumerate(types) if t == _REVOLUTE]
+        if not self.revolute_frames:
+            raise ValueError("SerialChainKinematics needs at least one revolute joint")
         joint_of_frame = chain._joint_indices_clamped.tolist()
         n_joints = len(self.revolute_frames)
         if [joint_of_frame[f] for f in self.revolute_frames] != list(range(n_joints)):

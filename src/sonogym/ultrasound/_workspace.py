@@ -20,7 +20,7 @@ import math
 import os
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TypeVar
 
 import torch
@@ -103,10 +103,6 @@ class ChunkRunner:
     def nbytes(self) -> int:
         return sum(ws.nbytes for ws in self.workspaces)
 
-    def clear(self) -> None:
-        for ws in self.workspaces:
-            ws.clear()
-
     def workers(self, chunks: int) -> int:
         """Threads a call with ``chunks`` chunks uses."""
         if self.device.type != "cpu" or getattr(_local, "worker", False):
@@ -134,7 +130,6 @@ class ChunkRunner:
         try:
             share(0)
         finally:
-            for f in futures:  # wait for all before raising: they write into the caller's out
-                f.exception()
+            wait(futures)  # all of them, before raising: they write into the caller's out
         for f in futures:
             f.result()

@@ -172,7 +172,8 @@ def train(
         str | None,
         typer.Option(
             help="Observation: the task's default (images), or 'state' (the privileged state), "
-            "'ct' / 'labels' (navigation, surgery)."
+            "'ct' / 'labels' (navigation, surgery), 'us_heading' (navigation: image + the "
+            "probe's yaw)."
         ),
     ] = None,
     phantom_spacing: Annotated[

@@ -15,7 +15,7 @@ from sonogym.envs.registry import check_algo, get_task
 FAST_ENV = dict(phantom_spacing=0.002)
 
 
-def _tiny(task, algo, out, steps, **kw):
+def _tiny(task, algo, out, steps, env_kwargs_extra=None, **kw):
     torch.set_num_threads(1)
     return train(
         task,
@@ -26,7 +26,7 @@ def _tiny(task, algo, out, steps, **kw):
         out=out,
         patients=(0,),
         obs_downsample=2 if task == "navigation" else 1,
-        env_kwargs=dict(FAST_ENV, episode_length=20),
+        env_kwargs=dict(FAST_ENV, episode_length=20, **(env_kwargs_extra or {})),
         progress=False,
         **kw,
     )
@@ -87,6 +87,25 @@ def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
     assert json.loads((run / "config.json").read_text())["resumed_from"] == 64
     with pytest.raises(ValueError, match="cannot resume"):
         _tiny("navigation", "a2c", run, steps=128, resume=True)
+
+
+def test_navigation_with_heading_trains_an_image_branch_and_a_heading_branch(tmp_path):
+    """obs_mode="us_heading": the Dict observation reaches the encoder as a conv branch over the
+    pooled image and an MLP over the heading, and the trained policy's action reads both."""
+    run = tmp_path / "nav-heading"
+    _tiny(
+        "navigation", "ppo", run, steps=32, net="small", env_kwargs_extra={"obs_mode": "us_heading"}
+    )
+    policy, cfg = load_policy(run)
+    layout = policy.encoder.layout
+    assert layout.keys == ("heading", "image") and layout.shapes == ((2,), (1, 100, 75))
+    assert isinstance(policy.encoder.branches["heading"][0], torch.nn.Linear)
+    x = torch.rand(4, layout.size)
+    mean = policy.act({"observations": x}, role="policy")[1]["mean_actions"]
+    x_flipped = x.clone()
+    x_flipped[:, :2] = -x_flipped[:, :2]  # heading first (sorted keys): the probe turned 180 deg
+    mean_flipped = policy.act({"observations": x_flipped}, role="policy")[1]["mean_actions"]
+    assert not torch.allclose(mean, mean_flipped)
 
 
 @pytest.mark.parametrize(

@@ -176,3 +176,31 @@ def test_action_scaling_and_clipping_in_si_units():
     assert torch.allclose(d[0, :2], 0.003 * step[0], atol=1e-6)
     assert torch.allclose(d[1, :2], 0.006 * step[1], atol=1e-6)  # clipped to 6 mm
     assert d[0, 2].item() == pytest.approx(0.1) and d[1, 2].item() == pytest.approx(-0.2)
+
+
+def test_us_heading_observes_the_us_image_and_the_reached_yaw():
+    """``us_heading``: the "us" image bit for bit plus (cos, sin) of the reached yaw, which tells
+    the goal (yaw pi) from the goal turned 180 deg, where the images look alike."""
+    plain, head = _env(4), _env(4, obs_mode="us_heading")
+    obs_p, _ = plain.reset(seed=3)
+    obs_h, info = head.reset(seed=3)
+    assert set(obs_h) == {"image", "heading"}
+    assert head.observation_space.contains({k: v.numpy() for k, v in obs_h.items()})
+    torch.testing.assert_close(obs_h["image"], obs_p, rtol=0, atol=0)
+    yaw = info["measured_command"][:, 2]
+    torch.testing.assert_close(obs_h["heading"], torch.stack([yaw.cos(), yaw.sin()], -1))
+    act = torch.zeros(4, 3)
+    act[:, 2] = 1.0  # turn 0.1 rad
+    obs_h, *_, info = head.step(act)
+    yaw2 = info["measured_command"][:, 2]
+    assert float((yaw2 - yaw).abs().min()) > 0.02  # the arm turned the probe (velocity-limited)
+    torch.testing.assert_close(obs_h["heading"], torch.stack([yaw2.cos(), yaw2.sin()], -1))
+    # the goal and the goal turned 180 deg: headings opposite (the images nearly mirror)
+    env = head.unwrapped if hasattr(head, "unwrapped") else head
+    goal = env.goal_cmd.clone()
+    flipped = goal.clone()
+    flipped[:, 2] = 0.0
+    ids = torch.arange(4)
+    env.scene.reset(ids, torch.cat([goal[:2], flipped[2:]]))
+    h = env._get_observations(None)["heading"]
+    assert float(h[:2, 0].max()) < -0.99 and float(h[2:, 0].min()) > 0.99

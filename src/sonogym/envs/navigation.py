@@ -8,6 +8,13 @@ with its beam along the inward normal; the agent plans the 3 tangential DoF.
 **Observations.** ``obs_mode="us"``: the ultrasound image, (1, 200, 150) float32 in [0, 1] (depth
 rows from the probe face, lateral columns). ``"ct"``: the CT slice mapped from [-1000, 2000] HU
 to [0, 1]. ``"labels"``: the label slice, uint8 ids. ``"state"``: the privileged state (6,).
+``"us_heading"`` (not in the paper): Dict ``image``, the ultrasound image as in ``"us"``, and
+``heading`` (2,) float32 = (cos alpha, sin alpha) of the reached probe's yaw alpha in the
+patient's frontal plane (the angle the goal's alpha_G = pi is measured in). Why: the transverse
+view is nearly mirror-symmetric (the goal image and the image at yaw 0 mirrored correlate
+0.78-0.85, docs/results.md), so an image-only policy can hardly tell the goal from the goal
+turned 180 deg; 10-12 % of a population run's episodes ended there. The heading is what a
+tracked probe tells about the patient lying on the bed; it says nothing of where the goal lies.
 
 **Actions.** (dx, dy, dalpha) in {U}, unitless; scaled by ``action_scale`` (3 mm, 3 mm, 0.1 rad)
 and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.
@@ -63,7 +70,7 @@ from sonogym.envs.spec import (
 from sonogym.geometry import relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
 
-ObsMode = Literal["us", "ct", "labels", "state"]
+ObsMode = Literal["us", "us_heading", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 
 
@@ -163,8 +170,12 @@ class NavigationEnv(TorchVectorEnv):
             max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
         )
         self.action_bound = bound
+        us_space = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
         obs_space = {
-            "us": spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32),
+            "us": us_space,
+            "us_heading": spaces.Dict(
+                {"image": us_space, "heading": spaces.Box(-1.0, 1.0, (2,), np.float32)}
+            ),
             "ct": spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32),
             "labels": spaces.Box(0, 255, (1, *self.scene.image_shape), np.uint8),
             "state": spaces.Box(-np.inf, np.inf, (6,), np.float32),
@@ -223,6 +234,11 @@ class NavigationEnv(TorchVectorEnv):
         mode = self.cfg.obs_mode
         if mode == "state":
             return self._state.clone() if env_ids is None else self._state[env_ids].clone()
+        if mode == "us_heading":
+            sl = slice(None) if env_ids is None else env_ids
+            yaw = self.scene.measured_command(sl)[2]
+            heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1).float()
+            return {"image": self.scene.observe("us", env_ids), "heading": heading}
         return self.scene.observe(mode, env_ids)
 
     def _get_info(self) -> dict:

@@ -100,6 +100,14 @@ def test_failed_expert_episodes_are_counted_not_written(tmp_path):
     assert read_info(tmp_path / "d")["total_episodes"] == 0
 
 
+@pytest.mark.parametrize("task,mode", [("navigation", "us_heading"), ("surgery", "state")])
+def test_a_mode_other_than_the_datasets_is_refused_before_anything_is_written(tmp_path, task, mode):
+    with pytest.raises(ValueError, match="datasets record the default observation"):
+        rec.record(task, tmp_path / "d", episodes=1, envs=1, progress=False,
+                   env_kwargs={"obs_mode": mode}, log=lambda m: None)  # fmt: skip
+    assert not (tmp_path / "d").exists()
+
+
 def test_presets_are_the_papers_settings():
     nav = get_task("navigation").dataset
     assert [(p.name, p.episodes) for p in nav.presets] == [

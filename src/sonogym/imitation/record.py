@@ -117,6 +117,13 @@ def record(
     from tqdm import tqdm
 
     spec = dataset_spec(task)
+    default_mode = getattr(get_task(task).config_cls(), "obs_mode", None)
+    if (env_kwargs or {}).get("obs_mode", default_mode) != default_mode:
+        # the dataset's features (spec.features) read the default observation
+        raise ValueError(
+            f"{task} datasets record the default observation (obs_mode={default_mode!r}), got "
+            f"obs_mode={env_kwargs['obs_mode']!r}; leave obs_mode out of the env options"
+        )
     out = Path(out)
     t0 = time.perf_counter()
     if resume:

@@ -180,7 +180,11 @@ def train(
         float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
     ] = None,
     net: Annotated[
-        str | None, typer.Option(help="Conv trunk: paper or small (default: the preset's).")
+        str | None,
+        typer.Option(
+            help="Network size: paper, small or lean (small convs, [256, 128, 64] ReLU trunk; "
+            "surgery state runs on a CPU). Default: the preset's."
+        ),
     ] = None,
     threads: Annotated[
         int | None, typer.Option(help="torch CPU threads (default: the preset's).")
@@ -425,7 +429,7 @@ def sweep(
     preset: Annotated[str | None, typer.Option(help="auto, cpu or paper (every trial).")] = None,
     envs: Annotated[int | None, typer.Option(help="Parallel envs per trial.")] = None,
     steps: Annotated[int | None, typer.Option(help="Env steps per env per trial.")] = None,
-    net: Annotated[str | None, typer.Option(help="Conv trunk: paper or small.")] = None,
+    net: Annotated[str | None, typer.Option(help="Network size: paper, small or lean.")] = None,
     obs_downsample: Annotated[int | None, typer.Option(help="Image pooling factor.")] = None,
     obs_mode: Annotated[str | None, typer.Option(help="Observation mode (e.g. state).")] = None,
     simulator: Annotated[str | None, typer.Option(help="physical, sonogym or learned.")] = None,

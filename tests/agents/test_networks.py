@@ -83,3 +83,35 @@ def test_errors():
         make_models("navigation", layout, _box(3))["policy"].act(
             {"observations": torch.rand(1, layout.size)}, role="critic"
         )
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_lean_net_is_small_convs_a_narrow_trunk_and_relu(task):
+    """``lean`` keeps the small convs but halves the trunk and swaps ELU for ReLU; ``paper`` and
+    ``small`` keep the paper's [512, 256, 128] ELU trunk (their trained runs load unchanged)."""
+    layout, n_act = LAYOUTS[task]
+    if task == "navigation":
+        layout = ObsLayout(("_",), ((1, 50, 37),))
+    nets = {n: make_models(task, layout, _box(n_act), net=n)["policy"] for n in ("small", "lean")}
+    small, lean = nets["small"], nets["lean"]
+    trunk = [m.out_features for m in lean.encoder.trunk if isinstance(m, torch.nn.Linear)]
+    assert trunk == [256, 128, 64] and lean.mean_head.in_features == 64
+    assert [m.out_features for m in small.encoder.trunk if isinstance(m, torch.nn.Linear)] == [
+        512,
+        256,
+        128,
+    ]
+    kinds = {type(m) for m in lean.encoder.modules() if isinstance(m, torch.nn.ReLU | torch.nn.ELU)}
+    assert kinds == {torch.nn.ReLU}
+    assert torch.nn.ELU in {type(m) for m in small.encoder.modules()}
+
+    def conv_shapes(m):
+        return [c.weight.shape for c in m.modules() if isinstance(c, torch.nn.Conv2d)]
+
+    assert conv_shapes(lean) == conv_shapes(small)
+    n_params = {n: sum(p.numel() for p in m.parameters()) for n, m in nets.items()}
+    assert n_params["lean"] < 0.6 * n_params["small"]
+    assert lean.act({"observations": torch.rand(2, layout.size)}, role="policy")[0].shape == (
+        2,
+        n_act,
+    )

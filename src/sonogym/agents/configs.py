@@ -47,7 +47,7 @@ class TaskRLConfig:
     timesteps: int  # env steps per env (reference trainer timesteps)
     num_envs: int = 128  # paper
     obs_downsample: int = 1  # integer average-pooling factor of image observations
-    net: str = "paper"  # conv trunk size: a key of the task's ``trunks`` ("paper", "small")
+    net: str = "paper"  # network size: a key of ``networks.NET_SIZES`` (paper, small, lean)
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # initial log sigma of the Gaussian policy, action units

@@ -30,9 +30,15 @@ Vector-only observations (``obs_mode="state"``) get one [128, 128, 64] MLP per e
 navigation image at ``obs_downsample=4`` (50 x 37) it costs ~0.8 M multiply-adds per sample
 against ~22 M for the paper's trunk at ``obs_downsample=2``, and it fits inputs the paper's
 k8 kernels do not.
+
+``net="lean"`` has the small convs, a [256, 128, 64] trunk and ReLU in every MLP: about half
+the PPO update's multiply-adds of ``small`` and a cheaper activation, for surgery state runs
+on one CPU core (``NET_SIZES``; docs/results.md).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import gymnasium as gym
 import torch
@@ -46,19 +52,48 @@ VECTOR_MLP = (128, 128, 64)
 TRUNK_MLP = (512, 256, 128)
 
 
+@dataclass(frozen=True)
+class NetSize:
+    """What a network size (``net``) sets: the conv layers (a key of the task's ``trunks``),
+    the MLP the encoder's features pass through, and the MLPs' activation."""
+
+    convs: str
+    trunk: tuple[int, ...]
+    activation: type[nn.Module]
+
+
+#: ``lean``: the small convs, a trunk half as wide and ReLU instead of ELU. Why: on one CPU
+#: core a surgery state run's PPO update is compute-bound (GEMMs 57 %, ELU 20 % of it), and a
+#: 100 k-step run took 39.7 CPU min with ``small`` against the 30 min budget (docs/results.md).
+NET_SIZES: dict[str, NetSize] = {
+    "paper": NetSize("paper", TRUNK_MLP, nn.ELU),
+    "small": NetSize("small", TRUNK_MLP, nn.ELU),
+    "lean": NetSize("small", (256, 128, 64), nn.ReLU),
+}
+
+
+def net_size(net: str) -> NetSize:
+    if net not in NET_SIZES:
+        raise ValueError(f"unknown net {net!r}; choose from {list(NET_SIZES)}")
+    return NET_SIZES[net]
+
+
 def conv_spec(task: str, net: str = "paper"):
     """The (out_channels, kernel, stride) layers of ``task``'s conv trunk for size ``net``
     (the task registry's ``TrainingDefaults.trunks``)."""
     trunks = get_task(task).training.trunks
-    if net not in trunks:
-        raise ValueError(f"unknown net {net!r}; choose from {list(trunks)}")
-    return trunks[net]
+    convs = net_size(net).convs
+    if convs not in trunks:
+        raise ValueError(f"task {task!r} has no {convs!r} conv trunk; it has {list(trunks)}")
+    return trunks[convs]
 
 
-def mlp(in_features: int, sizes: tuple[int, ...]) -> nn.Sequential:
+def mlp(
+    in_features: int, sizes: tuple[int, ...], activation: type[nn.Module] = nn.ELU
+) -> nn.Sequential:
     layers: list[nn.Module] = []
     for out in sizes:
-        layers += [nn.Linear(in_features, out), nn.ELU()]
+        layers += [nn.Linear(in_features, out), activation()]
         in_features = out
     return nn.Sequential(*layers)
 
@@ -90,11 +125,14 @@ def conv_stack(in_shape: tuple[int, int, int], spec) -> tuple[nn.Sequential, int
 
 
 class Encoder(nn.Module):
-    """Per-entry branches (conv for images, MLP for vectors) concatenated into TRUNK_MLP."""
+    """Per-entry branches (conv for images, MLP for vectors) concatenated into the trunk MLP
+    (``NET_SIZES[net].trunk``)."""
 
     def __init__(self, task: str, layout: ObsLayout, net: str = "paper") -> None:
         super().__init__()
         convs = conv_spec(task, net)
+        size_spec = net_size(net)
+        act = size_spec.activation
         self.layout = layout
         self.branches = nn.ModuleDict()
         # vector entries split into parts with one MLP each (surgery: position + quaternion)
@@ -109,16 +147,16 @@ class Encoder(nn.Module):
                 parts = self.splits[key]
                 if sum(size for _, size in parts) != shape[0]:
                     raise ValueError(f"entry {key!r} of size {shape[0]} cannot split as {parts}")
-                net = nn.ModuleDict({name: mlp(size, VECTOR_MLP) for name, size in parts})
+                net = nn.ModuleDict({name: mlp(k, VECTOR_MLP, act) for name, k in parts})
                 n = len(parts) * VECTOR_MLP[-1]
             elif len(shape) == 1:
-                net, n = mlp(shape[0], VECTOR_MLP), VECTOR_MLP[-1]
+                net, n = mlp(shape[0], VECTOR_MLP, act), VECTOR_MLP[-1]
             else:
                 raise ValueError(f"observation entry {key!r} has unsupported shape {shape}")
             self.branches[_name(key)] = net
             total += n
-        self.trunk = mlp(total, TRUNK_MLP)
-        self.out_features = TRUNK_MLP[-1]
+        self.trunk = mlp(total, size_spec.trunk, act)
+        self.out_features = size_spec.trunk[-1]
 
     def forward(self, flat: torch.Tensor) -> torch.Tensor:
         obs = self.layout.unflatten(flat)

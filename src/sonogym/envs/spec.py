@@ -172,8 +172,9 @@ class SafetyParams:
 class TrainingDefaults:
     """A task's RL defaults: the paper's tables and what the network needs to know.
 
-    ``trunks`` maps a network size ("paper", "small") to the conv layers of the task's image
-    trunk; ``vector_splits`` names vector observation entries the encoder splits into named
+    ``trunks`` maps a conv size ("paper", "small") to the conv layers of the task's image
+    trunk (``agents.networks.NET_SIZES`` names the one each ``net`` uses: ``lean`` the
+    small); ``vector_splits`` names vector observation entries the encoder splits into named
     parts with one MLP each (surgery's pose: ("pos", 3), ("quat", 4)); ``init_log_std`` is the
     Gaussian policy's initial log standard deviation in action units (exploration);
     ``final_log_std`` (None: off) is a ceiling on it that falls linearly in log space from

@@ -170,13 +170,13 @@ class NavigationEnv(TorchVectorEnv):
             max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
         )
         self.action_bound = bound
-        us_space = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
+        unit_image = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
         obs_space = {
-            "us": us_space,
+            "us": unit_image,
             "us_heading": spaces.Dict(
-                {"image": us_space, "heading": spaces.Box(-1.0, 1.0, (2,), np.float32)}
+                {"image": unit_image, "heading": spaces.Box(-1.0, 1.0, (2,), np.float32)}
             ),
-            "ct": spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32),
+            "ct": unit_image,
             "labels": spaces.Box(0, 255, (1, *self.scene.image_shape), np.uint8),
             "state": spaces.Box(-np.inf, np.inf, (6,), np.float32),
         }[cfg.obs_mode]

@@ -232,10 +232,15 @@ class TaskSpec:
     # changes, so a policy trained on an older one is refused instead of silently misread
     obs_versions: dict[str, int] = field(default_factory=dict)
 
+    @property
+    def default_obs_mode(self) -> str | None:
+        """The env config's default ``obs_mode`` (None: the config has no such field)."""
+        return getattr(self.config_cls(), "obs_mode", None)
+
     def obs_version(self, obs_mode: str | None) -> int:
         """The version of observation ``obs_mode`` (None: the env config's default mode)."""
         if obs_mode is None:
-            obs_mode = getattr(self.config_cls(), "obs_mode", None)
+            obs_mode = self.default_obs_mode
         return self.obs_versions.get(obs_mode, 1)
 
     def metric(self, key: str) -> Metric:

@@ -117,7 +117,7 @@ def record(
     from tqdm import tqdm
 
     spec = dataset_spec(task)
-    default_mode = getattr(get_task(task).config_cls(), "obs_mode", None)
+    default_mode = get_task(task).default_obs_mode
     if (env_kwargs or {}).get("obs_mode", default_mode) != default_mode:
         # the dataset's features (spec.features) read the default observation
         raise ValueError(

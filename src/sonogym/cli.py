@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -179,6 +180,13 @@ def train(
     phantom_spacing: Annotated[
         float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
     ] = None,
+    env_option: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Any other env option as KEY=VALUE (SI units, as the task's config names it), "
+            "e.g. unsafe_penalty=0.5; repeatable. Overrides the preset's env options."
+        ),
+    ] = None,
     net: Annotated[
         str | None,
         typer.Option(
@@ -221,7 +229,9 @@ def train(
     if preset is not None and preset not in PRESETS:
         raise typer.BadParameter(f"unknown preset {preset!r}; choose from {list(PRESETS)}")
     pats = parse_patients(patients)
-    env_kwargs = {} if phantom_spacing is None else {"phantom_spacing": phantom_spacing * 1e-3}
+    env_kwargs = parse_env_options(task, env_option)
+    if phantom_spacing is not None:
+        env_kwargs["phantom_spacing"] = phantom_spacing * 1e-3
     if obs_mode is not None:
         env_kwargs["obs_mode"] = obs_mode
     if learned_nets:
@@ -364,6 +374,57 @@ def _check_positive(*options: tuple[str, int | None]) -> None:
     for name, v in options:
         if v is not None and v < 1:
             raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+
+
+#: Env options with their own ``train`` flag (units or parsing of their own there).
+_FLAGGED_ENV_OPTIONS = {
+    "obs_mode": "--obs-mode",
+    "patients": "--patients",
+    "simulator": "--simulator",
+    "learned_nets": "--learned-nets",
+    "phantom_spacing": "--phantom-spacing (in mm)",
+    "device": "--device",
+}
+
+
+def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
+    """``--env-option KEY=VALUE`` items -> env keyword arguments; values read as int, float,
+    true/false/none or text (as ``sonogym sweep``'s grid), comma-separated for an option whose
+    default is a tuple. Names an unknown option, a malformed item, a repeated key, a non-number
+    for a numeric option and an option that has its own flag."""
+    from sonogym.agents.sweep import parse_value
+    from sonogym.envs.registry import get_task
+
+    config_cls = get_task(task).config_cls
+    fields = sorted(f.name for f in dataclasses.fields(config_cls))
+    defaults = config_cls()
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key or not value.strip():
+            raise typer.BadParameter(f"--env-option {item!r}: write KEY=VALUE, e.g. w5=50")
+        if key in _FLAGGED_ENV_OPTIONS:
+            raise typer.BadParameter(
+                f"--env-option {key}: use {_FLAGGED_ENV_OPTIONS[key]} for this option"
+            )
+        if key not in fields:
+            raise typer.BadParameter(
+                f"--env-option {key}: {task} has no such option; its options are {fields}"
+            )
+        if key in out:
+            raise typer.BadParameter(f"--env-option {key} is given twice")
+        default = getattr(defaults, key)
+        if isinstance(default, tuple):  # e.g. action_scale=0.003,0.003,0.1
+            out[key] = tuple(parse_value(v) for v in value.split(","))
+            continue
+        out[key] = parse_value(value)
+        number = (int, float)
+        if isinstance(default, number) and not isinstance(out[key], number):
+            raise typer.BadParameter(
+                f"--env-option {key}={value}: expected a number (default {default!r})"
+            )
+    return out
 
 
 def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:

@@ -173,11 +173,45 @@ def test_cli_train_and_refusal(tmp_path):
     out = tmp_path / "cli"
     args = ["train", "--task", "surgery", "--algo", "ppo", "--envs", "2", "--steps", "16"]
     args += ["--patients", "0", "--phantom-spacing", "2", "--out", str(out)]
+    args += ["--env-option", "unsafe_penalty=0.5", "--env-option", "w5=20"]
     res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output
     assert (out / "checkpoints" / "agent_16.pt").exists()
     assert json.loads((out / "config.json").read_text())["task_config"]["env_kwargs"] == {
         "patients": [0],
         "phantom_spacing": 0.002,
-        "w5": 50.0,  # the cpu preset's surgery option, recorded for eval and resume
+        # --env-option overrides the cpu preset's w5 = 50 and adds its own; recorded for eval
+        # and resume
+        "w5": 20,
+        "unsafe_penalty": 0.5,
     }
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ("bogus=1", "surgery has no such option"),
+        ("obs_mode=state", "use --obs-mode"),
+        ("unsafe_penalty", "write KEY=VALUE"),
+        ("unsafe_penalty=high", "expected a number"),
+    ],
+)
+def test_cli_env_option_refusals(option, message, tmp_path):
+    """A bad --env-option is refused before anything is built or written, naming the fix."""
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    out = tmp_path / "never"
+    args = ["train", "--task", "surgery", "--env-option", option, "--out", str(out)]
+    res = CliRunner().invoke(app, args)
+    flat = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code != 0 and message in flat, res.output
+    assert not out.exists()
+
+
+def test_env_option_values_follow_the_option_type():
+    from sonogym.cli import parse_env_options
+
+    got = parse_env_options("surgery", ["action_scale=0.004,0.004,0.05", "corridor_damping=1"])
+    assert got == {"action_scale": (0.004, 0.004, 0.05), "corridor_damping": 1}

@@ -75,7 +75,7 @@ def parse_grid(items: list[str] | None) -> dict[str, list[Any]]:
         if not sep or not vals:
             raise ValueError(f"grid entry {item!r}: write key=value1,value2")
         check_key(key)
-        grid[key] = [_value(v) for v in vals.split(",")]
+        grid[key] = [parse_value(v) for v in vals.split(",")]
     return grid
 
 
@@ -261,7 +261,8 @@ def _write_table(out: Path, rows: list[TrialRow]) -> None:
     atomic_write_text(out / "sweep.md", "\n".join(md) + "\n")
 
 
-def _value(text: str) -> Any:
+def parse_value(text: str) -> Any:
+    """A grid or ``--env-option`` value: int, float, true/false/none, else the text."""
     text = text.strip()
     for conv in (int, float):
         try:

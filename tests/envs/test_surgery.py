@@ -15,6 +15,7 @@ from sonogym.envs.surgery import (
     SurgeryEnv,
     clamp_to_ball,
     corridor_damping,
+    distance_to_safe_set,
     state_observation,
     surgery_expert,
     surgery_regions,
@@ -64,7 +65,7 @@ def test_regions_on_hand_made_points():
 P = 0.3  # unsafe_penalty (reward per unsafe step)
 
 
-def _reward(p0, t0, p1, t1, hw=0.0055):
+def _reward(p0, t0, p1, t1, hw=0.0055, k=0.0):
     out = surgery_reward(
         torch.tensor([p0], dtype=torch.float64),
         torch.tensor([t0], dtype=torch.float64),
@@ -76,6 +77,7 @@ def _reward(p0, t0, p1, t1, hw=0.0055):
         W5,
         W6,
         P,
+        k,
     )
     return [o[0] for o in out]
 
@@ -121,6 +123,68 @@ def test_leaving_the_safe_set_costs_what_it_earned_plus_the_penalty():
     # back into C_free: the same formula, no penalty
     r, c, reg = _reward([0.02, 0, -0.045], 0.0, [0.02, 0, -0.055], 0.0)
     assert c.item() == 0 and reg.item() == FREE and r.item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_distance_to_the_safe_set_on_hand_made_points():
+    hw = torch.full((6,), 0.003)
+    p = torch.tensor(
+        [
+            [0.010, 0.0, -0.020],  # beside the corridor: 7 mm to its wall (30 mm to the plane)
+            [0.001, 0.0, 0.004],  # past the target on the axis: 4 mm
+            [0.008, 0.0, 0.003],  # past the target and aside: hypot(5, 3) mm
+            [0.050, 0.0, -0.045],  # far aside just below p_l's plane: 5 mm up to the plane
+            [0.0, 0.0, -0.060],  # C_free
+            [0.002, 0.0, -0.010],  # C_drill
+        ]
+    )
+    want = [7.0, 4.0, float(np.hypot(5.0, 3.0)), 5.0, 0.0, 0.0]
+    got = distance_to_safe_set(p, hw, L) * 1e3
+    assert got.tolist() == pytest.approx(want, abs=1e-4)
+
+
+def test_distance_penalty_makes_sliding_into_the_corridor_at_depth_cost_more_than_the_entrance():
+    """A PPO state seed cut the corner: it dove beside the corridor below p_l's plane and slid
+    in sideways at depth (unsafe a median 10 mm aside, 27 mm before the target), which the
+    flat penalty charges only 0.3 per step. With unsafe_distance_penalty = w6 the dive earns
+    less than going through p_l, while a tip 0.5 mm outside near the entrance costs barely
+    more than before, and the cap bounds any one step's cost."""
+    hw = torch.tensor([0.0055], dtype=torch.float64)
+
+    def ret(path, k):
+        p = torch.tensor(np.array(path), dtype=torch.float64)
+        th = torch.zeros(len(path), dtype=torch.float64)
+        return sum(
+            surgery_reward(
+                p[i - 1 : i], th[i - 1 : i], p[i : i + 1], th[i : i + 1], hw, L, W4, W5, W6, P, k
+            )[0].item()
+            for i in range(1, len(path))
+        )
+
+    start = [0.04, 0.0, -0.06]
+    end = [0, 0, -0.02]
+    proper = [np.array(start), *_segment(start, [0, 0, -L], 6), *_segment([0, 0, -L], end, 5)]
+    aside = [0.015, 0, -0.025]  # 9.5 mm beside the corridor wall, 25 mm deep
+    dive = [np.array(start), *_segment(start, aside, 6), *_segment(aside, end, 5)]
+    # same start, end and step count: the potential is path-independent, so only the
+    # penalties tell the paths apart
+    assert ret(proper, 0.0) == pytest.approx(ret(proper, W6))  # never unsafe
+    flat_gap = ret(proper, 0.0) - ret(dive, 0.0)
+    dist_gap = ret(proper, W6) - ret(dive, W6)
+    assert 0 < flat_gap < 3.0  # the flat penalty: a few 0.3s, which a discount can outweigh
+    # ... against more than the whole insertion from p_l to the end earns (flat 2.4, 19.25)
+    assert dist_gap > W6 * (L - 0.02) and dist_gap > 5 * flat_gap, (flat_gap, dist_gap)
+    # grazing: 0.5 mm outside the wall near the entrance costs 0.3 + 0.15, not a cliff
+    flat, c, _ = _reward([0.0, 0, -0.048], 0.0, [0.006, 0, -0.048], 0.0)
+    scaled, *_ = _reward([0.0, 0, -0.048], 0.0, [0.006, 0, -0.048], 0.0, k=W6)
+    assert c.item() == 1.0 and (flat - scaled).item() == pytest.approx(W6 * 0.0005)
+    # the cap bounds what one step can cost: 40 mm below p_l's plane and 30 mm aside
+    far = ([0.03, 0, -0.02], 0.0, [0.03, 0, -0.01], 0.0)
+    r_flat, *_ = _reward(*far)
+    out = surgery_reward(
+        *(torch.tensor([v], dtype=torch.float64) for v in (*far, 0.0055)), L, W4, W5, W6, P,
+        100.0, 0.01,
+    )  # fmt: skip
+    assert (r_flat - out[0]).item() == pytest.approx(100.0 * 0.01)
 
 
 def _paper_reward_unguarded(path, thetas):
@@ -510,6 +574,8 @@ def test_bad_options_raise():
         _env(1, sid="left")
     with pytest.raises(ValueError, match="workspace_radius must be > 0"):
         _env(1, workspace_radius=0.0)
+    with pytest.raises(ValueError, match="unsafe_distance_penalty .per m. and unsafe_distance_cap"):
+        _env(1, unsafe_distance_penalty=-1.0)
     env = _env(1, obs_mode="state")
     env.reset(seed=0)
     with pytest.raises(ValueError, match="shape"):

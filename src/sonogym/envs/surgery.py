@@ -75,6 +75,14 @@ largest of these. The C_free side of the corridor's
 entrance has no step: a first version that valued unsafe states w6 l = 15 lower made every
 misaligned crossing of p_l's plane a cliff, and PPO (sigma 0.05, 5 mm noise against an 11 mm
 corridor) learned to hover above p_l (return 3.7, insertion error 55-60 mm, 0.5 M env steps).
+Optional (off by default): ``unsafe_distance_penalty`` k (per m) adds k min(dist, cap) per
+unsafe step, dist the tip's distance from the safe set (``distance_to_safe_set``) and cap
+``unsafe_distance_cap`` (10 mm). A potential cannot tell paths apart, so with the flat
+penalty alone a drill that dives beside the corridor below p_l's plane and slides in at depth
+earns all the insertion minus 0.3 per unsafe step, which a discount can outweigh; a PPO state
+seed did this (unsafe steps a median 10 mm aside, 27 mm before the target). Uncapped at
+k = w6 a PPO run hovered above the corridor (safe, ~100 mm off after 40 k steps; early random
+walks deep in the unsafe region cost up to 90 per step); docs/results.md has the capped runs.
 Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
 The ``cpu`` training preset trains with w5 = 50 per rad (``SPEC.training.env_kwargs_cpu``): at
 the paper's 5 the tilt barely counts and state policies ended 4-5 deg off (docs/envs.md).
@@ -179,6 +187,11 @@ class SurgeryConfig:
     w5: float = 5.0  # reward per rad of drill-axis alignment (paper)
     w6: float = 300.0  # reward per m of progress toward {G} in C_drill (paper)
     unsafe_penalty: float = 0.3  # reward lost per step that ends in the unsafe region
+    # ... plus this much per m of the tip's distance from the safe set, counted up to
+    # unsafe_distance_cap (0: off): diving beside the corridor and sliding in at depth then
+    # costs more than grazing its entrance
+    unsafe_distance_penalty: float = 0.0
+    unsafe_distance_cap: float = 0.01  # m
     corridor_damping: float = 0.2  # factor on lateral + rotational actions in C_drill; 1: off
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
@@ -203,6 +216,11 @@ class SurgeryConfig:
             raise ValueError(f"workspace_radius must be > 0 (m), got {self.workspace_radius}")
         if self.unsafe_penalty < 0:
             raise ValueError(f"unsafe_penalty must be >= 0, got {self.unsafe_penalty}")
+        if self.unsafe_distance_penalty < 0 or self.unsafe_distance_cap < 0:
+            raise ValueError(
+                "unsafe_distance_penalty (per m) and unsafe_distance_cap (m) must be >= 0, got "
+                f"{self.unsafe_distance_penalty}, {self.unsafe_distance_cap}"
+            )
         if isinstance(self.patients, int | str):
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
@@ -227,6 +245,17 @@ def surgery_regions(
     drill = ~free & (p[:, :2].norm(dim=-1) <= half_width) & (p[:, 2] <= 0)
     unsafe = torch.full_like(free, UNSAFE, dtype=torch.long)
     return torch.where(free, FREE, torch.where(drill, DRILL, unsafe))
+
+
+def distance_to_safe_set(
+    p: torch.Tensor, half_width: torch.Tensor, skin_distance: float
+) -> torch.Tensor:
+    """(N,) distance (m) of tip positions p (N, 3) in {G} from C_free U C_drill: 0 inside,
+    else the nearer of p_l's plane (p_z = -l) and the corridor cylinder (radius d/2, depth 0)."""
+    radial = (p[:, :2].norm(dim=-1) - half_width).clamp_min(0.0)
+    to_corridor = torch.hypot(radial, p[:, 2].clamp_min(0.0))
+    to_plane = (p[:, 2] + skin_distance).clamp_min(0.0)
+    return torch.minimum(to_corridor, to_plane)
 
 
 def surgery_potential(
@@ -261,9 +290,12 @@ def surgery_reward(
     w5: float,
     w6: float,
     unsafe_penalty: float,
+    unsafe_distance_penalty: float = 0.0,
+    unsafe_distance_cap: float = math.inf,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One transition: reward Phi(s_t+1) - Phi(s_t) - unsafe_penalty c_t, cost
-    c_t = 1[p_t+1 unsafe] and the region of p_t+1 (module docstring).
+    """One transition: reward Phi(s_t+1) - Phi(s_t) - (unsafe_penalty + unsafe_distance_penalty
+    min(dist(p_t+1, safe set), unsafe_distance_cap)) c_t, cost c_t = 1[p_t+1 unsafe] and the
+    region of p_t+1 (module docstring).
 
     p, p_next: (N, 3) tip positions in {G} before and after, m; theta, theta_next: (N,) drill-axis
     angles, rad; half_width: (N,) d/2 = r + 2 mm, m."""
@@ -273,7 +305,11 @@ def surgery_reward(
     phi = surgery_potential(p, theta, region, l, w4, w5, w6)
     phi_next = surgery_potential(p_next, theta_next, region_next, l, w4, w5, w6)
     cost = (region_next == UNSAFE).to(p_next.dtype)
-    return phi_next - phi - unsafe_penalty * cost, cost, region_next
+    penalty = unsafe_penalty * cost
+    if unsafe_distance_penalty:
+        d = distance_to_safe_set(p_next, half_width, l).clamp_max(unsafe_distance_cap)
+        penalty = penalty + unsafe_distance_penalty * cost * d
+    return phi_next - phi - penalty, cost, region_next
 
 
 def clamp_to_ball(points: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor | float):
@@ -500,6 +536,8 @@ class SurgeryEnv(TorchVectorEnv):
             cfg.w5,
             cfg.w6,
             cfg.unsafe_penalty,
+            cfg.unsafe_distance_penalty,
+            cfg.unsafe_distance_cap,
         )
         self._reward = reward
         self._cost = cost

@@ -36,6 +36,14 @@ for s in 0 1 2; do
   $S eval --run runs/surg-state-lean-s$s --protocol idt --envs 50
   $S eval --run runs/surg-state-lean-s$s --protocol odt-patient --envs 50
 done
+# ... and with the distance penalty for unsafe steps (twelfth session; docs/envs.md): every
+# target met by every seed in <= 30 CPU min (28.9-29.8 at load 2).
+for s in 0 1 2; do
+  $S train --task surgery --algo ppo --obs-mode state --net lean \
+      --env-option unsafe_distance_penalty=100 --seed $s --steps 120000 --out runs/surg-state-dist-s$s
+  $S eval --run runs/surg-state-dist-s$s --protocol idt --envs 50
+  $S eval --run runs/surg-state-dist-s$s --protocol odt-patient --envs 50
+done
 # Surgery from the paper's observation (US volume pooled 2x to 5 x 25 x 18, + tracked pose),
 # PPO trained for the safety filter (the filter acts at test time only), current settings
 # (cpu preset, w5 = 50). The documented run was started for 130k steps and is reported at
@@ -60,6 +68,14 @@ $S train --task navigation --algo ppo --preset cpu --patients 100-131 --steps 23
 $S eval --run runs/nav-pop32-head-s0 --envs 50
 $S eval --run runs/nav-pop32-head-s0 --envs 50 --protocol odt-patient --held-out 5
 $S eval --run runs/nav-pop32-head-s0 --envs 50 --patients tests/data/totalsegmentator_example \
+    --name real-subject
+# ... and with the lean net (twelfth session), reported at agent_26496.pt, its last
+# checkpoint within 120 min (the documented run wrote one every 2,944 steps).
+$S train --task navigation --algo ppo --preset cpu --patients 100-131 --steps 26496 --seed 0 \
+    --obs-mode us_heading --net lean --out runs/nav-pop32-head-lean-s0
+$S eval --run runs/nav-pop32-head-lean-s0 --envs 50
+$S eval --run runs/nav-pop32-head-lean-s0 --envs 50 --protocol odt-patient --held-out 5
+$S eval --run runs/nav-pop32-head-lean-s0 --envs 50 --patients tests/data/totalsegmentator_example \
     --name real-subject
 # Imitation learning: expert datasets, ACT and Diffusion Policy (navigation at 100 x 75).
 $S record --task navigation --preset mb --episodes 200 --envs 16 --out runs/ds-nav-mb
@@ -108,6 +124,10 @@ $S report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s
 $S report --task reconstruction --runs runs/recon-ppo-small-s0 --out docs/results/reconstruction
 $S report --task surgery --runs runs/surg-state-w5-s0-100k runs/surg-state-w5-s1-100k \
     runs/surg-state-w5-s2-100k runs/surg-img-w5-s0 runs/il-surg-act --out docs/results/surgery
+$S report --task surgery --runs runs/surg-state-lean-s0 runs/surg-state-lean-s1 \
+    runs/surg-state-lean-s2 runs/surg-img-w5-s0 --out docs/results/surgery-lean
+$S report --task surgery --runs runs/surg-state-dist-s0 runs/surg-state-dist-s1 \
+    runs/surg-state-dist-s2 runs/surg-img-w5-s0 --out docs/results/surgery-dist
 $S plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs --out docs/results/navigation-sweep \
     --metric "Episode / return" --metric "Episode / position_error_mm"
 $S plot --runs runs/nav-ppo-small-s0 --out docs/results/navigation-curves \

@@ -65,7 +65,7 @@ def test_regions_on_hand_made_points():
 P = 0.3  # unsafe_penalty (reward per unsafe step)
 
 
-def _reward(p0, t0, p1, t1, hw=0.0055, k=0.0):
+def _reward(p0, t0, p1, t1, hw=0.0055, k=0.0, cap=math.inf):
     out = surgery_reward(
         torch.tensor([p0], dtype=torch.float64),
         torch.tensor([t0], dtype=torch.float64),
@@ -78,6 +78,7 @@ def _reward(p0, t0, p1, t1, hw=0.0055, k=0.0):
         W6,
         P,
         k,
+        cap,
     )
     return [o[0] for o in out]
 
@@ -148,22 +149,15 @@ def test_distance_penalty_makes_sliding_into_the_corridor_at_depth_cost_more_tha
     flat penalty charges only 0.3 per step. With unsafe_distance_penalty = w6 the dive earns
     less than going through p_l, while a tip 0.5 mm outside near the entrance costs barely
     more than before, and the cap bounds any one step's cost."""
-    hw = torch.tensor([0.0055], dtype=torch.float64)
 
     def ret(path, k):
-        p = torch.tensor(np.array(path), dtype=torch.float64)
-        th = torch.zeros(len(path), dtype=torch.float64)
-        return sum(
-            surgery_reward(
-                p[i - 1 : i], th[i - 1 : i], p[i : i + 1], th[i : i + 1], hw, L, W4, W5, W6, P, k
-            )[0].item()
-            for i in range(1, len(path))
-        )
+        steps = zip(path[:-1], path[1:], strict=True)
+        return sum(_reward(list(a), 0.0, list(b), 0.0, k=k)[0].item() for a, b in steps)
 
     start = [0.04, 0.0, -0.06]
     end = [0, 0, -0.02]
     proper = [np.array(start), *_segment(start, [0, 0, -L], 6), *_segment([0, 0, -L], end, 5)]
-    aside = [0.015, 0, -0.025]  # 9.5 mm beside the corridor wall, 25 mm deep
+    aside = [0.015, 0, -0.025]  # 9.5 mm beside the corridor wall, 25 mm before the target
     dive = [np.array(start), *_segment(start, aside, 6), *_segment(aside, end, 5)]
     # same start, end and step count: the potential is path-independent, so only the
     # penalties tell the paths apart
@@ -180,11 +174,8 @@ def test_distance_penalty_makes_sliding_into_the_corridor_at_depth_cost_more_tha
     # the cap bounds what one step can cost: 40 mm below p_l's plane and 30 mm aside
     far = ([0.03, 0, -0.02], 0.0, [0.03, 0, -0.01], 0.0)
     r_flat, *_ = _reward(*far)
-    out = surgery_reward(
-        *(torch.tensor([v], dtype=torch.float64) for v in (*far, 0.0055)), L, W4, W5, W6, P,
-        100.0, 0.01,
-    )  # fmt: skip
-    assert (r_flat - out[0]).item() == pytest.approx(100.0 * 0.01)
+    r_capped, *_ = _reward(*far, k=100.0, cap=0.01)
+    assert (r_flat - r_capped).item() == pytest.approx(100.0 * 0.01)
 
 
 def _paper_reward_unguarded(path, thetas):

@@ -127,3 +127,20 @@ def test_memory_is_small(slicer):
     sim.simulate(slicer(*random_poses(4, seed=5)))
     assert sim.nbytes < 40e6
     assert slicer.nbytes < 3.5 * slicer.num_voxels + 40e6
+
+
+@pytest.mark.parametrize("n", [1, 3, 5])
+@pytest.mark.parametrize("h", [1, 2, 7])
+def test_box_sum_over_rows_matches_the_unit_tap_blur(n, h):
+    # the physical preset's interface sum: out[y] = sum of x over rows y - r .. y + r, zero
+    # beyond the edges, bit for bit what the generic blur with unit taps gives
+    from sonogym.ultrasound import psf
+    from sonogym.ultrasound.simulator import _box_sum_rows
+
+    x = torch.randn(3, h, 4, generator=torch.Generator().manual_seed(h + n))
+    got = _box_sum_rows(x, n, torch.empty_like(x))
+    assert torch.equal(got, psf.blur_1d(x, [1.0] * n, -2))
+    r = (n - 1) // 2
+    for y in range(h):
+        want = x[:, max(0, y - r) : y + r + 1].sum(1)
+        assert torch.allclose(got[:, y], want, atol=1e-6)

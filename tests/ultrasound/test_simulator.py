@@ -129,18 +129,24 @@ def test_memory_is_small(slicer):
     assert slicer.nbytes < 3.5 * slicer.num_voxels + 40e6
 
 
-@pytest.mark.parametrize("n", [1, 3, 5])
+@pytest.mark.parametrize("taps", [[1.0], [1.0] * 3, [1.0] * 5, [0.2, 1.0, 0.3], [0.0, 1.0, 0.5]])
 @pytest.mark.parametrize("h", [1, 2, 7])
-def test_box_sum_over_rows_matches_the_unit_tap_blur(n, h):
-    # the physical preset's interface sum: out[y] = sum of x over rows y - r .. y + r, zero
-    # beyond the edges, bit for bit what the generic blur with unit taps gives
+def test_blur_with_a_unit_centre_tap_matches_the_multiply_first_blur(taps, h):
+    # blur_1d skips the multiply when the centre tap is 1 (the physical preset's 1 mm interface
+    # sum and its axial PSF): bit for bit the multiply-then-add correlation, zero beyond edges
     from sonogym.ultrasound import psf
-    from sonogym.ultrasound.simulator import _box_sum_rows
 
-    x = torch.randn(3, h, 4, generator=torch.Generator().manual_seed(h + n))
-    got = _box_sum_rows(x, n, torch.empty_like(x))
-    assert torch.equal(got, psf.blur_1d(x, [1.0] * n, -2))
-    r = (n - 1) // 2
+    x = torch.randn(3, h, 4, generator=torch.Generator().manual_seed(h + len(taps)))
+    got = psf.blur_1d(x, taps, -2, out=torch.empty_like(x))
+    r = (len(taps) - 1) // 2
+    ref = x * taps[r]
+    for k in range(1, min(r, h - 1) + 1):
+        if taps[r - k]:
+            ref[:, k:].add_(x[:, : h - k], alpha=taps[r - k])
+        if taps[r + k]:
+            ref[:, : h - k].add_(x[:, k:], alpha=taps[r + k])
+    assert torch.equal(got, ref)
+    assert torch.equal(psf.blur_1d(x, taps, -2), ref)  # without out=
     for y in range(h):
-        want = x[:, max(0, y - r) : y + r + 1].sum(1)
+        want = sum(taps[r + d] * x[:, y + d] for d in range(-r, r + 1) if 0 <= y + d < h)
         assert torch.allclose(got[:, y], want, atol=1e-6)

@@ -205,22 +205,6 @@ def _buf(ws: Workspace, name: str, like: torch.Tensor, dtype=torch.float32) -> t
     return ws.get(name, tuple(like.shape), dtype)
 
 
-def _box_sum_rows(x: torch.Tensor, n: int, out: torch.Tensor) -> torch.Tensor:
-    """Sum of x over ``n`` (odd) neighbouring rows centred on each row, zero beyond the edges,
-    into ``out`` (not aliasing x): the first pair of rows is one add, not a copy and an add."""
-    r = (n - 1) // 2
-    h = x.shape[1]
-    if r == 0 or h == 1:
-        return out.copy_(x)
-    torch.add(x[:, 1:], x[:, :-1], out=out[:, 1:])  # rows y and y - 1
-    out[:, 0] = x[:, 0]
-    out[:, :-1].add_(x[:, 1:])  # row y + 1
-    for d in range(2, min(r, h - 1) + 1):
-        out[:, d:].add_(x[:, :-d])
-        out[:, :-d].add_(x[:, d:])
-    return out
-
-
 class ModelBasedSimulator:
     """Model-based ultrasound simulator (``UltrasoundSimulator`` protocol).
 
@@ -531,12 +515,12 @@ class ModelBasedSimulator:
         for d in range(1, min(k["ramp_rows"], h - 1) + 1):
             near[:, : h - d].bitwise_or_(edge[:, d:])
             near[:, d:].bitwise_or_(edge[:, : h - d])
-        refl.mul_(_buf(ws, "nearf", ct).copy_(near))
+        refl.mul_(tmp.copy_(near))  # tmp is free until the transmission term below
         # The partial-volume ramp spreads an interface's jump over about a CT voxel; summing
         # the partial reflections over ``interface_width`` gives back a sharp interface's |R|.
         rb = k["ramp_box"]
         if rb > 1:
-            refl = _box_sum_rows(refl, rb, _buf(ws, "rbox", ct))
+            refl = _psf.blur_1d(refl, [1.0] * rb, -2, out=_buf(ws, "rbox", ct))
         # Incidence: the interface normal from the CT gradient (the CT is smooth where the label
         # map is a voxel staircase), on a grid of ~1 mm blocks (the resampled CT has no finer
         # detail): forward axial difference, lateral central difference of the two rows' sum;

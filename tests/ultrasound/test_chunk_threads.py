@@ -99,3 +99,18 @@ def test_a_forked_child_gets_its_own_pool(two_threads):
         child.kill()
     assert not alive, "the forked child hung on the parent's thread pool"
     assert queue.get(timeout=5) == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+
+
+def test_exp2_gives_each_element_the_same_bits_whatever_the_batch_and_threads(two_threads):
+    # ATen's scalar exp2 (for a range's last elements) differs from its vectorised one by an
+    # ulp: the value of an element must not depend on where the tensor or a thread's range ends
+    from sonogym.ultrasound._workspace import exp2_
+
+    x = -20 * torch.rand(3 * 30_000 + 17, generator=torch.Generator().manual_seed(0))
+    torch.set_num_threads(1)
+    whole = exp2_(x.clone())
+    torch.set_num_threads(2)
+    assert torch.equal(exp2_(x.clone()), whole)
+    for lo, hi in ((0, 30_000), (30_000, 60_000), (5, 21), (60_000, x.numel())):
+        assert torch.equal(exp2_(x[lo:hi].clone()), whole[lo:hi])
+    assert torch.allclose(whole, torch.exp2(x), rtol=1e-6, atol=0)

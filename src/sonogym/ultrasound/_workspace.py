@@ -53,6 +53,35 @@ class Workspace:
         self._bufs.clear()
 
 
+#: Elements below which ATen runs an elementwise op on one thread (``at::internal::GRAIN_SIZE``).
+_GRAIN = 32768
+#: A multiple of what ATen's vectorised loop takes per step (two vectors; 32 floats with AVX-512).
+_VECTOR_STEP = 64
+
+
+def exp2_(t: torch.Tensor) -> torch.Tensor:
+    """``t.exp2_()`` for a contiguous CPU tensor, with the same bits for any batch size and any
+    number of threads.
+
+    ATen computes a range's last ``n mod 2 * vector width`` elements with a scalar exp2 that
+    differs from the vectorised one by an ulp, so where a range ends (the batch size, the split
+    over intra-op threads) changed the result. Here every element takes the vectorised path:
+    blocks of ``_GRAIN`` elements (never split, no remainder) and a padded copy of the rest.
+    """
+    flat = t.view(-1)
+    if t.device.type != "cpu":
+        return t.exp2_()
+    n = flat.numel()
+    body = n - n % _VECTOR_STEP
+    for block in flat[:body].split(_GRAIN):
+        block.exp2_()
+    if body < n:
+        rest = torch.zeros(_VECTOR_STEP, dtype=t.dtype)
+        rest[: n - body] = flat[body:]
+        flat[body:] = rest.exp2_()[: n - body]
+    return t
+
+
 #: Most threads one call fans out to: each holds its own scratch (the simulator's is ~40 MB),
 #: and two cores were what we could measure (benchmarks/README.md, "Ultrasound").
 MAX_CHUNK_WORKERS = 8

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 import torch
 
 from sonogym.ultrasound import psf as _psf
-from sonogym.ultrasound._workspace import ChunkRunner, Workspace
+from sonogym.ultrasound._workspace import ChunkRunner, Workspace, exp2_
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.slicer import Slices
 from sonogym.ultrasound.speckle import gaussian_quantiles, lattice_bits, seed_mix
@@ -432,7 +432,7 @@ class ModelBasedSimulator:
         # Attenuation, inclusive of the current pixel: A_B = exp(-sum (alpha - beta_B) dz).
         a_b = _buf(ws, "a", ct)
         torch.index_select(k["att_neg"], 0, lab.view(-1), out=a_b.view(-1))
-        a_b.cumsum_(1).clamp_(min=-_MAX_EXPONENT * _LOG2_E).exp2_()
+        exp2_(a_b.cumsum_(1).clamp_(min=-_MAX_EXPONENT * _LOG2_E))
         # Reflection rho = ((Zu - Z) / (Zu + Z + eps))^2 with Z ~ clipped HU (see _constants);
         # reflect padding: the row above row 0 is row 1. Gel reads as water (0 HU).
         x = _buf(ws, "x", ct)
@@ -557,7 +557,7 @@ class ModelBasedSimulator:
         torch.cumsum(q[:, :-1], 1, out=e_amp[:, 1:])
         e_amp[:, 0] = 0.0
         bound = _MAX_LOG_AMPLITUDE * _LOG2_E
-        e_amp.clamp_(-bound, bound).exp2_()
+        exp2_(e_amp.clamp_(-bound, bound))
         refl_v.mul_(cos.view(b, hb, 1, w))
         refl.mul_(e_amp)
         # Complex scatterers T (1 + A_l V) (g_re + i g_im), attenuated, plus the reflections

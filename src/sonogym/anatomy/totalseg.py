@@ -185,10 +185,23 @@ class _Nifti:
         return arr, self.affine @ ornt_.inv_ornt_aff(ornt, self.shape)
 
     def same_grid(self, ct: _Nifti) -> None:
-        if self.shape != ct.shape or not np.allclose(self.img.affine, ct.img.affine, atol=1e-3):
+        if self.shape != ct.shape:
             raise PatientError(
                 f"{self.path}: label grid (shape {self.shape}) differs from the CT grid "
                 f"{ct.path} (shape {ct.shape}); resample the labels onto the CT grid"
+            )
+        diff = np.abs(self.affine - ct.affine)
+        if diff.max() > 1e-6:  # metres: 1 um
+            moved = np.linalg.norm(self.affine[:3, 3] - ct.affine[:3, 3]) * 1e3
+            what = (
+                f"its origin is {moved:.3g} mm away from the CT's"
+                if diff[:3, :3].max() <= 1e-6
+                else "its voxel axes (orientation or voxel size) differ from the CT's"
+            )
+            raise PatientError(
+                f"{self.path}: same shape {self.shape} as the CT {ct.path}, but {what} (NIfTI "
+                "affine); the mask does not lie on the CT's voxels: resample it onto the CT grid "
+                "or fix its header"
             )
 
 
@@ -268,7 +281,7 @@ def load_totalsegmentator(
     if comb is not None:
         labels = _read_combined(_Nifti(comb, "label map"), ct_file)
     else:
-        labels, ignored = _combine_masks(seg_dir, ct_file, mask_threshold)
+        labels, ignored = _combine_masks(seg_dir, ct_file, mask_threshold, ct.shape)
     _check_bone_hu(ct, labels, ct_path)
     if target is not None:
         _check_target(labels, affine, target, folder)
@@ -424,9 +437,10 @@ def _mask(f: _Nifti, threshold: float | None) -> np.ndarray:
 
 
 def _combine_masks(
-    seg_dir: Path, ct_file: _Nifti, threshold: float | None
+    seg_dir: Path, ct_file: _Nifti, threshold: float | None, shape: tuple[int, int, int]
 ) -> tuple[np.ndarray, list[str]]:
-    """One label map from per-class masks. Soft-tissue classes first, so organs and bones
+    """One label map, in canonical RAS voxel order of ``shape`` (the reoriented CT's), from
+    per-class masks on the CT's file grid. Soft-tissue classes first, so organs and bones
     painted later win where masks overlap."""
     files = sorted(p for p in seg_dir.iterdir() if p.name.endswith((".nii", ".nii.gz")))
     if not files:
@@ -442,7 +456,7 @@ def _combine_masks(
         if i in by_id:
             raise PatientError(f"both {by_id[i]} and {f} exist; keep one")
         by_id[i] = f
-    labels = np.zeros(ct_file.shape, np.uint8)
+    labels = np.zeros(shape, np.uint8)  # not the file's shape: masks are read reoriented
     for i in order + sorted(k for k in by_id if k not in order):
         if i not in by_id:
             continue

@@ -595,6 +595,13 @@ def eval_(
             "'custom' with --patients)."
         ),
     ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Folder for the table, episode log and figure (default: the run folder; "
+            "give one for a run you cannot write to)."
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
     the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
@@ -615,7 +622,7 @@ def eval_(
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
             held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
-            name=name,
+            name=name, out=out,
             safety_filter={"mode": filter_mode, "threshold": filter_threshold},
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
@@ -623,7 +630,9 @@ def eval_(
     typer.echo(format_table(results), nl=False)
     log = name or protocol or "custom"
     stem = "eval" if log == "idt" else f"eval-{log}"
-    typer.echo(f"wrote {run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png")
+    typer.echo(
+        f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"
+    )
 
 
 @app.command(context_settings={"allow_extra_args": True})

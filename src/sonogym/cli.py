@@ -336,7 +336,7 @@ def il_train(
         float,
         typer.Option(
             help="Also a checkpoint at least this often (minutes; 0: none), so a killed run "
-            "resumes from at most this far back; it replaces the previous such one."
+            "resumes from at most this far back; each replaces the previous such one."
         ),
     ] = 5.0,
 ) -> None:

@@ -52,7 +52,7 @@ class ILTrainConfig:
     save_every: steps between checkpoints (a final one is always written).
     save_minutes: a checkpoint at least this often (minutes of training) between those, so a
         killed run (SIGKILL, a lost machine) loses at most that much; each such checkpoint
-        replaces the previous one that is not on the ``save_every`` grid; 0: none.
+        replaces the previous such one of this call; 0: none.
     log_every: steps between TensorBoard scalars.
     num_workers: DataLoader worker processes (0: load in the training process).
     image_cache: the reader's image cache, "bytes" or "decoded" (see ``LeRobotFrames``).

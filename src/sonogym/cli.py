@@ -34,23 +34,27 @@ def phantom(
         bool, typer.Option(help="Write one combined label map instead of per-class masks.")
     ] = False,
     force: Annotated[
-        bool, typer.Option(help="Replace the subject folder --out if it exists.")
+        bool,
+        typer.Option(help="Replace a subject folder that sonogym phantom wrote in --out."),
     ] = False,
 ) -> None:
     """Build a procedural lumbar phantom and write ct.nii.gz + segmentations/ (+ preview.png).
-    An existing --out is never mixed into: it is refused unless --force replaces it."""
+    An existing --out is never mixed into: it is refused unless --force replaces it, which it
+    does only for a folder sonogym phantom wrote (its .sonogym marker) holding nothing else."""
     from sonogym.anatomy import PhantomParams, load_phantom, save_totalsegmentator
-    from sonogym.runs import prepare_output
+    from sonogym.runs import deleted_message, prepare_output
 
-    patient = load_phantom(seed, PhantomParams(spacing=spacing * 1e-3))
-    prepare_output(out, resume=False, force=force, what="subject", marker="ct.nii.gz")
-    save_totalsegmentator(patient, out, combined=combined)
-    typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
-    if preview:
-        from sonogym.viz.preview import save_preview
+    with prepare_output(out, resume=False, force=force, kind="subject") as folder:
+        if folder.deleted:
+            typer.echo(deleted_message(out, folder.deleted))
+        patient = load_phantom(seed, PhantomParams(spacing=spacing * 1e-3))
+        save_totalsegmentator(patient, out, combined=combined)
+        typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
+        if preview:
+            from sonogym.viz.preview import save_preview
 
-        path = save_preview(patient, out / "preview.png")
-        typer.echo(f"wrote {path}")
+            path = save_preview(patient, out / "preview.png")
+            typer.echo(f"wrote {path}")
 
 
 @app.command()
@@ -325,13 +329,28 @@ def il_train(
         typer.Option(help="Continue the run in --out (options left out: the run's)."),
     ] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
+    checkpoint_every: Annotated[
+        int, typer.Option(help="Optimiser steps between checkpoints (a final one always).")
+    ] = 5_000,
+    checkpoint_minutes: Annotated[
+        float,
+        typer.Option(
+            help="Also a checkpoint at least this often (minutes; 0: none), so a killed run "
+            "resumes from at most this far back; each replaces the previous such one."
+        ),
+    ] = 5.0,
 ) -> None:
     """Train ACT or Diffusion Policy on an expert dataset; evaluate with sonogym eval --run."""
     from sonogym.agents.presets import cpu_threads
     from sonogym.imitation.run import config_from_dict, make_config, read_run_config
     from sonogym.imitation.train import ILTrainConfig, train_il
 
-    _check_positive(("--steps", steps), ("--batch-size", batch_size))
+    _check_positive(("--steps", steps), ("--batch-size", batch_size),
+                    ("--checkpoint-every", checkpoint_every))  # fmt: skip
+    if not checkpoint_minutes >= 0:
+        raise typer.BadParameter(
+            f"--checkpoint-minutes must be >= 0 (0: none), got {checkpoint_minutes}"
+        )
     old = read_run_config(out) if resume and (out / "config.json").is_file() else None
     if old is not None:  # what is left out continues as the run was trained
         seed = old["seed"] if seed is None else seed
@@ -362,7 +381,8 @@ def il_train(
     cfg = ILTrainConfig(data=str(data), out=str(out), policy=policy, preset=preset,
                         policy_config=policy_config, steps=steps or 10_000,
                         batch_size=batch_size or 8, seed=1000 if seed is None else seed,
-                        device=device, resume=resume, force=force)  # fmt: skip
+                        device=device, resume=resume, force=force, save_every=checkpoint_every,
+                        save_minutes=checkpoint_minutes)  # fmt: skip
     res = train_il(cfg)
     typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
                f"evaluate with: sonogym eval --run {out}")  # fmt: skip
@@ -595,6 +615,13 @@ def eval_(
             "'custom' with --patients)."
         ),
     ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Folder for the table, episode log and figure (default: the run folder; "
+            "give one for a run you cannot write to)."
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
     the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
@@ -615,7 +642,7 @@ def eval_(
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
             held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
-            name=name,
+            name=name, out=out,
             safety_filter={"mode": filter_mode, "threshold": filter_threshold},
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
@@ -623,7 +650,9 @@ def eval_(
     typer.echo(format_table(results), nl=False)
     log = name or protocol or "custom"
     stem = "eval" if log == "idt" else f"eval-{log}"
-    typer.echo(f"wrote {run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png")
+    typer.echo(
+        f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"
+    )
 
 
 @app.command(context_settings={"allow_extra_args": True})

@@ -148,3 +148,95 @@ def test_malformed_run_config_is_named(run, tmp_path):
     (r / "config.json").write_text(json.dumps({"task": "navigation"}))
     with pytest.raises(ValueError, match="lacks"):
         evaluate_run(r, trials=1, envs=1)
+
+
+def test_a_second_run_into_a_folder_in_use_is_refused_naming_the_first(tmp_path, folder_in_use):
+    out = tmp_path / "r"
+    first = folder_in_use(out, "rl-run")  # a training run into out, still running
+    for kw in ({}, {"force": True}):
+        with pytest.raises(FileExistsError, match=rf"{out} is in use .*pid {first.pid}"):
+            _tiny(out, seed=1, **kw)
+    assert not (out / "config.json").exists() and not (out / "checkpoints").exists()
+
+
+def test_force_replaces_only_a_marked_run_and_logs_what_it_deleted(run, tmp_path):
+    import shutil
+
+    from sonogym.runs import MARKER
+
+    r = tmp_path / "r"
+    shutil.copytree(run, r)
+    logged = []
+    _tiny(r, steps=8, force=True, log=logged.append)
+    deleted = [m for m in logged if m.startswith("--force: deleted")]
+    assert len(deleted) == 1 and "checkpoints/, config.json, events.out.tfevents" in deleted[0]
+    (r / "notes.txt").write_text("my observations")
+    with pytest.raises(FileExistsError, match="holds notes.txt, which sonogym train does not"):
+        _tiny(r, steps=8, force=True)
+    (r / "notes.txt").unlink()
+    (r / MARKER).unlink()  # a run from before folders were marked
+    with pytest.raises(FileExistsError, match="Delete it by hand"):
+        _tiny(r, steps=8, force=True)
+    assert (r / "checkpoints" / "agent_8.pt").is_file()
+    assert _tiny(r, steps=16, resume=True).steps == 16  # resuming it still works
+
+
+def test_eval_refuses_an_unwritable_run_before_running_and_writes_to_out(
+    run, tmp_path, monkeypatch
+):
+    import shutil
+
+    from sonogym.evaluation import rl_eval
+
+    r = tmp_path / "r"
+    shutil.copytree(run, r)
+    (r / "episodes").write_text("")  # where the episode log goes cannot be a folder
+    real = rl_eval.run_controllers
+    monkeypatch.setattr(rl_eval, "run_controllers", lambda *a, **k: pytest.fail("ran episodes"))
+    with pytest.raises(ValueError, match=rf"cannot write the evaluation into {r}.*--out"):
+        evaluate_run(r, trials=2, envs=2, controllers=("policy",), plot=False)
+    monkeypatch.setattr(rl_eval, "run_controllers", real)
+    before = {p.name for p in r.iterdir()}
+    res = CliRunner().invoke(app, ["eval", "--run", str(r), "--trials", "2", "--envs", "2",
+                                   "--out", str(tmp_path / "ev")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert {p.name for p in r.iterdir()} == before  # the run folder is untouched
+    ev = tmp_path / "ev"
+    assert (ev / "eval.json").is_file() and (ev / "eval.md").is_file()
+    assert (ev / "episodes" / "idt.npz").is_file() and (ev / "trajectories-idt.png").is_file()
+
+
+@pytest.mark.parametrize("task", ["../../escaped", "SonoGym/Navigation-v0", ["navigation"]])
+def test_a_task_name_from_config_json_is_checked_against_the_registry(run, tmp_path, task):
+    import shutil
+
+    from sonogym.evaluation.curves import plot_curves
+    from sonogym.evaluation.trained import load_run
+
+    r = tmp_path / "runs" / "r"
+    shutil.copytree(run, r)
+    cfg = json.loads((r / "config.json").read_text())
+    cfg["task"] = task
+    (r / "config.json").write_text(json.dumps(cfg))
+    for call in (
+        lambda: load_run(r),
+        lambda: evaluate_run(r, trials=1, envs=1, plot=False),
+        lambda: plot_curves([r], tmp_path / "plots", expert=False),
+        lambda: _tiny(r, steps=64, resume=True),
+    ):
+        with pytest.raises(ValueError, match=r"config.json: task .* is not a sonogym task"):
+            call()
+    # no file was written outside the run (none named after the task)
+    assert [p for p in tmp_path.rglob("*") if p.is_file() and not p.is_relative_to(r)] == []
+
+
+def test_progress_in_a_log_is_a_few_plain_lines(tmp_path, capsys):
+    _tiny(tmp_path / "r", steps=200, progress=True, log=lambda m: None)
+    err = capsys.readouterr().err
+    assert "\r" not in err and err.endswith("\n")
+    lines = err.splitlines()
+    # a line every 5 % (or 30 s): 20 for 200 steps, where a tqdm bar writes an update every
+    # few steps
+    assert 10 <= len(lines) <= 25, err
+    assert all(line.startswith("navigation/ppo: ") for line in lines)
+    assert lines[-1].startswith("navigation/ppo: 200/200 step (100%)")

@@ -86,3 +86,11 @@ def test_cli_resume_refuses_options_that_would_change_the_sweep(tmp_path):
     text = "".join(res.output.replace("│", "").split())
     assert res.exit_code != 0
     assert "leaveout--grid,--steps" in text and "sweep.jsondefinesit" in text
+
+
+def test_a_second_sweep_into_a_folder_in_use_is_refused(tmp_path, folder_in_use):
+    out = tmp_path / "sweep"
+    first = folder_in_use(out, "sweep")
+    with pytest.raises(FileExistsError, match=rf"{out} is in use .*pid {first.pid}"):
+        sweep("navigation", "ppo", out, seeds=1, log=lambda m: None, **TINY)
+    assert not (out / "sweep.json").exists()

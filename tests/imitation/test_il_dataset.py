@@ -96,7 +96,8 @@ def test_info_json_tasks_and_episode_metadata(tmp_path):
     assert [(r["dataset_from_index"], r["dataset_to_index"]) for r in rows] == list(
         zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
     )
-    # each row points at the data file holding its frames, one row group per episode
+    # each row points at the data file holding its frames: a file of its own per episode
+    assert [(r["data/chunk_index"], r["data/file_index"]) for r in rows] == [(0, 0), (0, 1), (0, 2)]
     for r in rows:
         path = fmt.data_file(root, r["data/chunk_index"], r["data/file_index"])
         t = pq.read_table(path, columns=["episode_index", "index", "task_index"]).to_pydict()
@@ -104,7 +105,7 @@ def test_info_json_tasks_and_episode_metadata(tmp_path):
         assert [t["index"][i] for i in mine] == list(
             range(r["dataset_from_index"], r["dataset_to_index"])
         )
-    assert pq.ParquetFile(fmt.data_file(root, 0, 0)).num_row_groups == 3
+    assert pq.ParquetFile(fmt.data_file(root, 0, 0)).num_row_groups == 1
     schema = pq.read_schema(fmt.data_file(root, 0, 0))
     assert str(schema.field(IMG).type) == "struct<bytes: binary, path: string>"
     assert str(schema.field("action").type) == "fixed_size_list<element: float>[3]"
@@ -150,18 +151,62 @@ def test_stats_json_matches_the_data(tmp_path):
     assert loaded[RGB]["std"].shape == (3, 1, 1) and loaded["action"]["mean"].dtype == torch.float32
 
 
-def test_size_limit_splits_files_and_reader_spans_them(tmp_path):
+def test_appending_never_rewrites_earlier_data_and_the_reader_spans_the_files(tmp_path):
     eps = random_episodes(4)
-    write(tmp_path / "ds", eps, data_files_size_in_mb=0)
-    files = sorted((tmp_path / "ds" / "data").glob("*/*.parquet"))
+    root = tmp_path / "ds"
+    w = write(root, eps[:3])
+    files = sorted((root / "data").glob("*/*.parquet"))
+    before = {f: (f.stat().st_ino, f.read_bytes()) for f in files}
+    w.add_episode(eps[3])
+    # the earlier episodes' files are the same files, byte for byte (not rewritten and renamed)
+    assert {f: (f.stat().st_ino, f.read_bytes()) for f in files} == before
+    files = sorted((root / "data").glob("*/*.parquet"))
     assert [f.name for f in files] == [f"file-{i:03d}.parquet" for i in range(4)]
-    rows = read_episodes(tmp_path / "ds")
+    rows = read_episodes(root)
     assert [r["data/file_index"] for r in rows] == [0, 1, 2, 3]
-    ds = LeRobotFrames(tmp_path / "ds")
+    ds = LeRobotFrames(root)
     want = np.concatenate([e["action"] for e in eps])
     assert torch.equal(
         torch.stack([ds[i]["action"] for i in range(len(ds))]), torch.from_numpy(want)
     )
+
+
+def _as_one_data_file(root):
+    """Rewrite a dataset the way earlier writers laid it out: every episode in file-000 (one
+    row group each), meta/episodes pointing there."""
+    files = sorted((root / "data").glob("*/*.parquet"))
+    tables = [pq.read_table(f) for f in files]
+    with pq.ParquetWriter(root / "one.parquet", tables[0].schema) as w:
+        for t in tables:
+            w.write_table(t, row_group_size=len(t))
+    for f in files:
+        f.unlink()
+    (root / "one.parquet").rename(fmt.data_file(root, 0, 0))
+    for f in (root / fmt.EPISODES_DIR).glob("*/*.parquet"):
+        t = pq.read_table(f)
+        i = t.schema.get_field_index("data/file_index")
+        t = t.set_column(i, t.schema.field(i), [[0] * len(t)])
+        pq.write_table(t, f)
+
+
+def test_a_dataset_in_one_data_file_is_read_and_appended_to_without_rewriting_it(tmp_path):
+    eps = random_episodes(4)
+    root = tmp_path / "ds"
+    write(root, eps[:3])
+    _as_one_data_file(root)
+    one = fmt.data_file(root, 0, 0)
+    assert pq.ParquetFile(one).num_row_groups == 3
+    before = (one.stat().st_ino, one.read_bytes())
+    w = DatasetWriter(root, FPS, FEATURES, task="navigate", resume=True)
+    w.add_episode(eps[3])
+    assert (one.stat().st_ino, one.read_bytes()) == before
+    assert [r["data/file_index"] for r in read_episodes(root)] == [0, 0, 0, 1]
+    write(tmp_path / "clean", eps)
+    a, b = LeRobotFrames(root), LeRobotFrames(tmp_path / "clean")
+    assert len(a) == len(b)
+    for i in range(len(a)):
+        for k in b[i]:
+            assert torch.equal(a[i][k], b[i][k]), (i, k)
 
 
 class Killed(BaseException):
@@ -196,9 +241,8 @@ def test_interrupted_write_resumes_without_duplicates_or_gaps(tmp_path, monkeypa
     monkeypatch.undo()
     with pytest.raises(RuntimeError, match="resume=True"):
         w.add_episode(eps[2])
-    n2 = sum(len(e["action"]) for e in eps[:2])
-    on_disk = pq.read_metadata(root / "data/chunk-000/file-000.parquet").num_rows
-    assert on_disk == n2 + len(eps[2]["action"])  # episode 2's rows landed, uncommitted
+    on_disk = pq.read_metadata(root / "data/chunk-000/file-002.parquet").num_rows
+    assert on_disk == len(eps[2]["action"])  # episode 2's rows landed, uncommitted
     # the killed folder still reads as the two committed episodes
     assert len(LeRobotFrames(root)) == sum(len(e["action"]) for e in eps[:2])
     w = DatasetWriter(root, FPS, FEATURES, task="navigate", resume=True)
@@ -207,8 +251,10 @@ def test_interrupted_write_resumes_without_duplicates_or_gaps(tmp_path, monkeypa
         w.add_episode(ep)
     assert not list(root.rglob("*.tmp"))
     n = sum(len(e["action"]) for e in eps)
-    rows = pq.read_table(root / "data/chunk-000/file-000.parquet", columns=["index"])
-    assert rows.column("index").to_pylist() == list(range(n))  # no orphan, duplicate, gap
+    files = sorted((root / "data").glob("*/*.parquet"))
+    assert len(files) == 4
+    rows = [i for f in files for i in pq.read_table(f, columns=["index"])["index"].to_pylist()]
+    assert rows == list(range(n))  # no orphan, duplicate, gap
     write(tmp_path / "clean", eps)
     got, clean = _snapshot(root), _snapshot(tmp_path / "clean")
     assert got[0].keys() == clean[0].keys()
@@ -321,7 +367,7 @@ def test_decoded_cache_equals_bytes_cache(tmp_path):
 def test_the_default_image_cache_reads_each_data_file_once(tmp_path, monkeypatch):
     import sonogym.imitation.reader as reader
 
-    write(tmp_path / "ds", random_episodes(6), data_files_size_in_mb=0)
+    write(tmp_path / "ds", random_episodes(6))
     files = sorted((tmp_path / "ds" / "data").glob("*/*.parquet"))
     assert len(files) > 2  # one data file per episode
     reads = []

@@ -113,3 +113,83 @@ def test_json_writes_survive_paths_that_are_not_utf8(tmp_path):
     odd = str(tmp_path) + "/subj-\udcff\udcfe"  # how Python names a non-UTF-8 folder
     atomic_write_json(tmp_path / "c.json", {"patients": [odd]})
     assert read_json(tmp_path / "c.json", "test")["patients"] == [odd]
+
+
+def test_force_never_deletes_a_folder_holding_a_config_json_of_the_users(blob_dataset, tmp_path):
+    project = tmp_path / "project"
+    (project / "src").mkdir(parents=True)
+    (project / "src" / "model.py").write_text("print('years of work')\n")
+    (project / "config.json").write_text('{"lr": 0.001}')
+    with pytest.raises(FileExistsError, match="no .sonogym marker.*Delete it by hand"):
+        train_il(_cfg(blob_dataset, project, force=True))
+    assert sorted(p.name for p in project.rglob("*")) == ["config.json", "model.py", "src"]
+
+
+def test_a_second_run_into_a_folder_in_use_is_refused(blob_dataset, tmp_path, folder_in_use):
+    run = tmp_path / "run"
+    first = folder_in_use(run, "il-run")  # e.g. an ACT run training into it
+    with pytest.raises(FileExistsError, match=rf"{run} is in use .*pid {first.pid}"):
+        train_il(_cfg(blob_dataset, run, policy="diffusion", policy_config=None))
+    assert not (run / "config.json").exists()
+
+
+def test_checkpoint_every_is_an_option(blob_dataset, tmp_path):
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    args = ["il-train", "--policy", "act", "--data", str(blob_dataset), "--out", str(run),
+            "--steps", "5", "--batch-size", "2", "--checkpoint-every", "2"]  # fmt: skip
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert [s for s, _ in checkpoints(run)] == [2, 4, 5]
+    assert read_run_config(run)["train"]["save_every"] == 2
+
+
+def test_time_based_checkpoints_replace_each_other(blob_dataset, tmp_path):
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    # a checkpoint every 60 us of training: after every step (each takes longer)
+    train_il(_cfg(blob_dataset, run, steps=6, save_every=1000, save_minutes=1e-6))
+    # each time-based one replaced the one before; the final one is always written
+    assert [s for s, _ in checkpoints(run)] == [5, 6]
+    with pytest.raises(ValueError, match="save_minutes must be >= 0"):
+        _cfg(blob_dataset, run, save_minutes=-1)
+
+
+def test_an_undecodable_frame_is_named_and_training_saves_before_it_stops(
+    blob_dataset, tmp_path, capsys
+):
+    import re
+    import shutil
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from sonogym.imitation import lerobot_format as fmt
+    from sonogym.imitation.reader import read_episodes
+
+    torch.set_num_threads(1)
+    data = tmp_path / "data"
+    shutil.copytree(blob_dataset, data)
+    ep = read_episodes(data)[3]
+    path = fmt.data_file(data, ep["data/chunk_index"], ep["data/file_index"])
+    t = pq.read_table(path)
+    key = "observation.images.cam"
+    col = t.column(key).combine_chunks()
+    rows = [e == 3 for e in t.column("episode_index").to_pylist()]
+    damaged = [b"\x89PNG\r\n\x1a\n broken" if bad else b for b, bad in
+               zip(col.field("bytes").to_pylist(), rows, strict=True)]  # fmt: skip
+    images = pa.StructArray.from_arrays(
+        [pa.array(damaged, pa.binary()), col.field("path")], names=["bytes", "path"]
+    )
+    pq.write_table(t.set_column(t.schema.get_field_index(key), t.schema.field(key), images), path)
+    run = tmp_path / "run"
+    pattern = rf"{re.escape(str(path))} \(row \d+\): episode 3, frame \d+ .*key '{key}'"
+    with pytest.raises(fmt.DatasetFormatError, match=pattern):
+        train_il(_cfg(data, run, steps=200, save_every=1000, save_minutes=0))
+    out = capsys.readouterr().out
+    step = int(re.search(r"stopped at step (\d+) of 200", out).group(1))
+    assert [s for s, _ in checkpoints(run)] == [step] and "--resume" in out

@@ -149,9 +149,11 @@ RUN_CONFIG_KEYS = ("task", "algo", "seed", "obs_layout", "action_space", "task_c
 
 def run_config(run: str | Path) -> dict:
     """A run's ``config.json``, with a clear error if it is missing, malformed or incomplete."""
+    from sonogym.envs.registry import check_task_name
     from sonogym.runs import read_json
 
     cfg = read_json(Path(run) / "config.json", "`sonogym train` run folder", RUN_CONFIG_KEYS)
+    check_task_name(cfg["task"], Path(run) / "config.json")  # it names files (eval, plots)
     missing = [
         k for k in ("env_kwargs", "obs_downsample", "obs_scales") if k not in cfg["task_config"]
     ]

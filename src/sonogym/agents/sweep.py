@@ -33,7 +33,13 @@ from pathlib import Path
 from typing import Any
 
 from sonogym.agents.configs import TrainConfig, resolve_train_config
-from sonogym.runs import atomic_write_json, atomic_write_text, prepare_output, read_json
+from sonogym.runs import (
+    atomic_write_json,
+    atomic_write_text,
+    deleted_message,
+    prepare_output,
+    read_json,
+)
 
 RAY_HINT = "sonogym sweep needs Ray Tune: pip install 'sonogym[ray]' (or pip install 'ray[tune]')"
 SWEEP_FILE = "sweep.json"
@@ -127,8 +133,9 @@ def sweep(
 ) -> SweepResult:
     """Run the sweep (see the module doc). ``train_options``: ``resolve_train_config``'s
     (``preset``, ``envs``, ``steps``, ``device``, ``env_kwargs``, ...), for every trial.
-    ``max_concurrent``: trials running at once (None: as many as the CPUs/GPUs hold)."""
-    ray, tune = import_ray()
+    ``max_concurrent``: trials running at once (None: as many as the CPUs/GPUs hold). The sweep
+    folder is locked while the sweep runs (``sonogym.runs.prepare_output``)."""
+    import_ray()
     out = Path(out).resolve()
     if resume:
         spec = read_json(out / SWEEP_FILE, "sonogym sweep", ("base", "grid", "seeds"))
@@ -141,9 +148,17 @@ def sweep(
         base = resolve_train_config(task, algo, **train_options)
         for values in _grid_points(grid):  # every trial's config must be valid up front
             apply(base, values)
-        prepare_output(out, resume=False, force=force, what="sweep", marker=SWEEP_FILE)
         spec = {"base": base.to_dict(), "grid": grid, "seeds": seeds, "samples": samples}
-        atomic_write_json(out / SWEEP_FILE, spec)
+    with prepare_output(out, resume=resume, force=force, kind="sweep") as folder:
+        if folder.deleted:
+            log(deleted_message(out, folder.deleted))
+        if not resume:
+            atomic_write_json(out / SWEEP_FILE, spec)
+        return _run_sweep(out, spec, address, max_concurrent, resume, log)
+
+
+def _run_sweep(out: Path, spec: dict, address, max_concurrent, resume: bool, log) -> SweepResult:
+    ray, tune = import_ray()
     base = TrainConfig.from_dict(spec["base"])
     resources = {"cpu": base.threads or 1}
     if str(base.device).startswith("cuda"):

@@ -20,11 +20,14 @@ skrl the true final observation (``info["final_obs"]``) as ``next_observations``
 time-limit bootstrapping, and the reset one as the next step's input.
 
 Output folders follow ``sonogym.runs.prepare_output``: an existing run is continued only with
-``resume`` and replaced only with ``force``. ``resume`` reloads ``config.json`` before touching
-anything (an explicit option that differs is refused, naming it; ``steps``, ``device`` and
-``threads`` may change) and continues from the newest readable checkpoint (weights, optimiser,
-standardisers; the envs restart from a fresh reset and the rollout memory is empty). Ctrl-C
-saves a checkpoint at the last completed step and says how to resume.
+``resume`` and replaced only with ``force`` (only a folder marked as a training run, holding
+only what training and evaluation write; what it deletes is logged), and the folder is locked
+while a run writes it (a second run into it is refused, naming the first one's pid).
+``resume`` reloads ``config.json`` before touching anything (an explicit option that differs
+is refused, naming it; ``steps``, ``device`` and ``threads`` may change) and continues from the
+newest readable checkpoint (weights, optimiser, standardisers; the envs restart from a fresh
+reset and the rollout memory is empty). Ctrl-C saves a checkpoint at the last completed step
+and says how to resume.
 """
 
 from __future__ import annotations
@@ -55,11 +58,13 @@ from sonogym.agents.configs import (
     use_multi_tensor_optimizers,
 )
 from sonogym.agents.networks import log_std_ceiling, make_models
-from sonogym.envs.registry import get_task, make_vec
+from sonogym.envs.registry import check_task_name, get_task, make_vec
+from sonogym.progress import progress_bar
 from sonogym.runs import (
     TrainingInterrupted,
     atomic_torch_save,
     atomic_write_json,
+    deleted_message,
     prepare_output,
     read_json,
 )
@@ -113,7 +118,8 @@ def train(
         resume: continue the run in ``out`` (its ``config.json``); force: replace it.
         checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
             update boundaries; TensorBoard once per update).
-        progress: show a tqdm bar with the ETA; log: where the start summary goes (default:
+        progress: show the progress with the ETA (``sonogym.progress``: a bar on a terminal,
+            a line every few percent in a log); log: where the start summary goes (default:
             printed when ``progress``).
     """
     kw = dict(env_kwargs or {})
@@ -148,6 +154,7 @@ def train(
 def load_train_config(out: str | Path) -> TrainConfig:
     """The ``TrainConfig`` a run folder was trained with (its ``config.json``)."""
     d = read_json(Path(out) / "config.json", "`sonogym train` run folder", ("task", "algo"))
+    check_task_name(d["task"], Path(out) / "config.json")
     if "task_config" in d:
         check_obs_version(d, Path(out) / "config.json")
     try:
@@ -174,11 +181,25 @@ def run_training(
     log: Callable[[str], None] = print,
     on_checkpoint: CheckpointCallback | None = None,
 ) -> TrainResult:
-    """Run the training ``cfg`` describes into ``out`` (see the module docstring)."""
-    from skrl.trainers.torch import SequentialTrainerCfg
-    from tqdm import tqdm
-
+    """Run the training ``cfg`` describes into ``out`` (see the module docstring); the run
+    folder is locked while it runs."""
     out = Path(out)
+    with prepare_output(out, resume=resume, force=force, kind="rl-run") as folder:
+        if folder.deleted:
+            log(deleted_message(out, folder.deleted))
+        return _run_training(cfg, out, resume, progress, log, on_checkpoint)
+
+
+def _run_training(
+    cfg: TrainConfig,
+    out: Path,
+    resume: bool,
+    progress: bool,
+    log: Callable[[str], None],
+    on_checkpoint: CheckpointCallback | None,
+) -> TrainResult:
+    from skrl.trainers.torch import SequentialTrainerCfg
+
     start_ckpt = None
     if resume:
         start_ckpt = latest_readable_checkpoint(out, warn=log)
@@ -189,8 +210,6 @@ def run_training(
                 f"{out} already has {start_ckpt[1]} steps >= the requested {cfg.steps}; "
                 "pass a larger --steps to train further"
             )
-    else:
-        prepare_output(out, resume=False, force=force, what="training run", marker="config.json")
     start = start_ckpt[1] if start_ckpt else 0
     threads_before = torch.get_num_threads()
     if cfg.threads is not None:
@@ -238,7 +257,7 @@ def run_training(
     obs, _ = adapter.reset()
     if log is not _quiet:
         _announce(cfg, out, start, log, agent, adapter, obs)
-    bar = tqdm(total=steps, initial=start, disable=not progress, unit="step", desc=f"{task}/{algo}")
+    bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
     done = start
     recent = _EpisodeMeans()
     task_cfg = to_jsonable(cfg.rl)

@@ -31,6 +31,18 @@ def get_task(name: str) -> TaskSpec:
     raise ValueError(f"unknown task {name!r}; known tasks: {sorted(TASKS)}")
 
 
+def check_task_name(task: object, where: object) -> str:
+    """``task`` as a file read from disk (``where``, e.g. a run's config.json) gives it: one of
+    the registered task names exactly, since it names files and folders; anything else (an
+    edited or foreign file) is refused, naming the file and the known tasks."""
+    if not isinstance(task, str) or task not in TASKS:
+        raise ValueError(
+            f"{where}: task {task!r} is not a sonogym task (known: {sorted(TASKS)}); the file "
+            "was edited or not written by sonogym: restore it"
+        )
+    return task
+
+
 def check_algo(task: str, algo: str) -> TaskSpec:
     """The task's spec; raise ``ValueError`` for an unknown task or an algorithm the task does
     not support, naming the supported ones."""

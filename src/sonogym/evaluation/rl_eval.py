@@ -15,7 +15,8 @@ starts and returns the task's metrics (mean and std over episodes):
 The table is written to ``<run>/eval.json`` and ``<run>/eval.md`` (``eval-<protocol>.*`` for
 the out-of-domain protocols), every episode's metrics and trajectory to
 ``<run>/episodes/<protocol>.npz`` (``sonogym.evaluation.episodes``) and a trajectory figure to
-``<run>/trajectories-<protocol>.png``.
+``<run>/trajectories-<protocol>.png``; ``out`` puts them into another folder instead (a run
+that cannot be written to). That the folder takes them is checked before any episode runs.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ def evaluate_run(
     checkpoint: str | Path | None = None,
     safety_filter: dict[str, Any] | None = None,
     name: str | None = None,
+    out: str | Path | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
@@ -68,7 +70,8 @@ def evaluate_run(
 
     Writes ``eval.json`` / ``eval.md`` (``eval-<protocol>.*`` for other than ``idt``), the
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
-    ``trajectories-<protocol>.png``.
+    ``trajectories-<protocol>.png`` into ``out`` (default: the run folder), which must be
+    writable: checked before the episodes run.
     """
     from sonogym.envs.registry import get_task
     from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
@@ -98,6 +101,7 @@ def evaluate_run(
         )
     overrides.update(env_overrides or {})
     name = name or protocol or ("custom" if env_overrides else "idt")
+    dest = check_writable(Path(out) if out is not None else trained.path, name)
 
     filt = check_safety_filter(trained, safety_filter)
     episodes = run_controllers(
@@ -128,15 +132,14 @@ def evaluate_run(
         "track_columns": list(track.columns),
         "track_units": list(track.units),
     }
-    run = trained.path
     log = save_log(
-        log_path(run, name),
+        log_path(dest, name),
         meta,
         {c: ep["metrics"] for c, ep in episodes.items()},
         {c: ep["track"] for c, ep in episodes.items()},
     )
     if plot:
-        plot_trajectories(load_log(log), run / f"trajectories-{name}.png")
+        plot_trajectories(load_log(log), dest / f"trajectories-{name}.png")
     stem = "eval" if name == "idt" else f"eval-{name}"
     table = {
         "task": trained.task,
@@ -148,9 +151,30 @@ def evaluate_run(
         "env_overrides": to_jsonable(overrides),
         "results": results,
     }
-    atomic_write_text(run / f"{stem}.json", json.dumps(table, indent=1))
-    atomic_write_text(run / f"{stem}.md", format_table(results))
+    atomic_write_text(dest / f"{stem}.json", json.dumps(table, indent=1))
+    atomic_write_text(dest / f"{stem}.md", format_table(results))
     return results
+
+
+def check_writable(folder: Path, name: str) -> Path:
+    """``folder`` (created if absent) after checking that the evaluation's files can be
+    written there (a test file in it and in its ``episodes/``), so that a read-only run folder
+    is refused before its episodes run, not after."""
+    import tempfile
+
+    from sonogym.evaluation.episodes import log_path
+
+    for where in (folder, log_path(folder, name).parent):
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=where):
+                pass
+        except OSError as e:
+            raise ValueError(
+                f"cannot write the evaluation into {where} ({e.strerror or e}); give --out "
+                "FOLDER (evaluate_run(out=...)) for its table, episode log and figure"
+            ) from None
+    return folder
 
 
 def check_safety_filter(trained: TrainedRun, settings: dict[str, Any] | None) -> dict[str, Any]:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sonogym.envs.registry import check_task_name
 from sonogym.runs import lists_to_tuples, read_json
 
 IL_KIND = "sonogym-il-run"
@@ -45,6 +46,7 @@ def load_run(run: str | Path) -> TrainedRun:
                 f"{run} was trained on a dataset not recorded by sonogym (no task known); "
                 "evaluate it with load_il_policy and your own env"
             )
+        check_task_name(cfg["task"], run / "config.json")  # it names files (eval, plots)
         env = cfg.get("env_kwargs", {})
         return TrainedRun(run, "il", cfg["task"], cfg["algo"], int(cfg.get("seed", 0)),
                           lists_to_tuples(env), cfg)  # fmt: skip

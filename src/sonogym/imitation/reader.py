@@ -236,13 +236,27 @@ class LeRobotFrames(torch.utils.data.Dataset):
         if self._decoded is not None:
             return self._decoded[key][idx]
         data = self._file_images(int(self._file_of[idx]))[key][int(self._row_of[idx])]
-        arr = fmt.decode_png(data)
+        try:
+            arr = fmt.decode_png(data)
+        except Exception as e:  # PIL raises several types for damaged bytes
+            raise fmt.DatasetFormatError(
+                f"{self._where(key, idx)}: the PNG does not decode ({type(e).__name__}: {e}); "
+                "the data file is damaged: restore it, or record the dataset again"
+            ) from None
         if list(arr.shape) != self.features[key]["shape"]:
             raise fmt.DatasetFormatError(
-                f"{key} frame {idx}: PNG of shape {arr.shape}, info.json says "
+                f"{self._where(key, idx)}: PNG of shape {arr.shape}, info.json says "
                 f"{self.features[key]['shape']}"
             )
         return torch.from_numpy(arr.transpose(2, 0, 1).copy())
+
+    def _where(self, key: str, idx: int) -> str:
+        """Where frame ``idx``'s ``key`` is stored, for error messages."""
+        return (
+            f"{self._files[int(self._file_of[idx])]} (row {int(self._row_of[idx])}): episode "
+            f"{int(self._numeric['episode_index'][idx])}, frame "
+            f"{int(self._numeric['frame_index'][idx])} (index {idx}), key {key!r}"
+        )
 
     def _decode_all(self, key: str) -> torch.Tensor:
         h, w, c = self.features[key]["shape"]

@@ -21,6 +21,7 @@ from typing import Any
 
 import torch
 
+from sonogym.envs.registry import check_task_name
 from sonogym.imitation import act, diffusion
 from sonogym.imitation.processor import PolicyFeatures
 from sonogym.runs import (
@@ -131,6 +132,8 @@ def read_run_config(run: str | Path) -> dict[str, Any]:
     missing = [k for k in RUN_CONFIG_KEYS if k not in cfg]
     if missing:
         raise ValueError(f"{path} lacks {missing}: it was not written by `sonogym il-train`")
+    if cfg.get("task") is not None:  # None: a dataset sonogym did not record
+        check_task_name(cfg["task"], path)
     return cfg
 
 

@@ -30,7 +30,8 @@ from sonogym.imitation import run as runio
 from sonogym.imitation.lerobot_format import read_info
 from sonogym.imitation.processor import PolicyFeatures, stats_subset
 from sonogym.imitation.reader import LeRobotFrames, load_stats
-from sonogym.runs import TrainingInterrupted, prepare_output
+from sonogym.progress import progress_bar
+from sonogym.runs import TrainingInterrupted, deleted_message, prepare_output
 
 
 @dataclass(frozen=True)
@@ -49,11 +50,15 @@ class ILTrainConfig:
     resume: continue from the newest checkpoint in ``out``.
     force: delete an existing run folder ``out`` first.
     save_every: steps between checkpoints (a final one is always written).
+    save_minutes: a checkpoint at least this often (minutes of training) between those, so a
+        killed run (SIGKILL, a lost machine) loses at most that much; each such checkpoint
+        replaces the previous such one of this call; 0: none.
     log_every: steps between TensorBoard scalars.
     num_workers: DataLoader worker processes (0: load in the training process).
     image_cache: the reader's image cache, "bytes" or "decoded" (see ``LeRobotFrames``).
     episodes: episode indices to train on (None: all).
-    progress: show a tqdm progress bar.
+    progress: show the progress (``sonogym.progress``: a bar on a terminal, a line every few
+        percent in a log).
     """
 
     data: str
@@ -68,6 +73,7 @@ class ILTrainConfig:
     resume: bool = False
     force: bool = False
     save_every: int = 5_000
+    save_minutes: float = 5.0
     log_every: int = 100
     num_workers: int = 0
     image_cache: str = "bytes"
@@ -83,6 +89,8 @@ class ILTrainConfig:
             )
         if self.steps < 1 or self.batch_size < 1 or self.save_every < 1 or self.log_every < 1:
             raise ValueError("steps, batch_size, save_every and log_every must be >= 1")
+        if not self.save_minutes >= 0:
+            raise ValueError(f"save_minutes must be >= 0 (0: none), got {self.save_minutes}")
         if self.resume and self.force:
             raise ValueError("resume and force exclude each other")
 
@@ -120,16 +128,14 @@ def _recording(data: Path) -> dict:
     return read_recording(data) if (data / META).is_file() else {}
 
 
-def _prepare_out(cfg: ILTrainConfig):
-    """The run folder, and on resume its config and newest readable checkpoint's state (read
-    before anything is written)."""
-    out = Path(cfg.out)
-    prepare_output(out, cfg.resume, cfg.force, what="`sonogym il-train` run", marker="config.json")
+def _resume_state(cfg: ILTrainConfig):
+    """On resume the run's config and newest readable checkpoint's state (read before anything
+    is written); (None, None) for a new run."""
     if not cfg.resume:
-        return out, None, None
-    old = runio.read_run_config(out)
-    found = runio.newest_readable_checkpoint(out, cfg.device)
-    return out, old, None if found is None else found[1]
+        return None, None
+    old = runio.read_run_config(cfg.out)
+    found = runio.newest_readable_checkpoint(cfg.out, cfg.device)
+    return old, None if found is None else found[1]
 
 
 def _resume_conflicts(old: dict, new: dict) -> list[str]:
@@ -153,15 +159,23 @@ def _resume_conflicts(old: dict, new: dict) -> list[str]:
 
 
 def train_il(cfg: ILTrainConfig) -> ILTrainResult:
-    """Train (or resume) an IL policy; see the module doc. Returns the run folder and totals."""
+    """Train (or resume) an IL policy; see the module doc. Returns the run folder and totals.
+    The run folder is locked while it trains (``sonogym.runs.prepare_output``)."""
+    data = Path(cfg.data).resolve()
+    info = read_info(data)  # the dataset is checked before the run folder is touched
+    stats = load_stats(data)
+    with prepare_output(cfg.out, cfg.resume, cfg.force, kind="il-run") as folder:
+        if folder.deleted:
+            print(deleted_message(cfg.out, folder.deleted))
+        return _train(cfg, data, info, stats)
+
+
+def _train(cfg: ILTrainConfig, data: Path, info: dict, stats: dict) -> ILTrainResult:
     from torch.utils.tensorboard import SummaryWriter
-    from tqdm import tqdm
 
     pcfg = cfg.resolved_policy_config()
-    out, old, state = _prepare_out(cfg)
-    data = Path(cfg.data).resolve()
-    info = read_info(data)
-    stats = load_stats(data)
+    out = Path(cfg.out)
+    old, state = _resume_state(cfg)
     features = PolicyFeatures.from_info(info["features"])
     dev = torch.device(cfg.device)
 
@@ -250,10 +264,15 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     last_loss = float("nan")
     history: list[tuple[int, float]] = []
     t0 = time.perf_counter()
-    bar = tqdm(
-        total=cfg.steps, initial=start, disable=not cfg.progress, desc=f"il-train {cfg.policy}"
-    )
+    bar = progress_bar(cfg.steps, f"il-train {cfg.policy}", initial=start, unit="step",
+                       enabled=cfg.progress)  # fmt: skip
     step = start
+    resume_hint = (
+        f"sonogym il-train --policy {cfg.policy} --data {cfg.data} --out {out} --steps "
+        f"{cfg.steps} --resume"
+    )
+    saved_at = time.monotonic()
+    timed: Path | None = None  # the last checkpoint written for time, not on the step grid
 
     def save(step: int) -> Path:
         return runio.save_checkpoint(
@@ -270,7 +289,14 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
 
     try:
         while step < cfg.steps:
-            batch = {k: v.to(dev, non_blocking=True) for k, v in next(it).items()}
+            try:
+                raw = next(it)
+            except Exception:  # bad data (an undecodable frame): keep what was learnt
+                path = save(step)
+                print(f"stopped at step {step} of {cfg.steps} by the error below; saved {path}. "
+                      f"Fix the data, then resume with: {resume_hint}")  # fmt: skip
+                raise
+            batch = {k: v.to(dev, non_blocking=True) for k, v in raw.items()}
             loss, logs = model.compute_loss(batch, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -293,15 +319,18 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
                 sums, n_sum = {}, 0
             if step % cfg.save_every == 0 or step == cfg.steps:
                 save(step)
+                saved_at = time.monotonic()
+            elif cfg.save_minutes and time.monotonic() - saved_at >= 60 * cfg.save_minutes:
+                path = save(step)
+                if timed is not None:  # one time-based checkpoint is enough to resume from
+                    timed.unlink(missing_ok=True)
+                timed, saved_at = path, time.monotonic()
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         path = save(step)
-        msg = (
-            f"interrupted after {step} of {cfg.steps} steps; saved {path}. Resume with: sonogym "
-            f"il-train --policy {cfg.policy} --data {cfg.data} --out {out} --steps {cfg.steps} "
-            "--resume"
-        )
+        msg = f"interrupted after {step} of {cfg.steps} steps; saved {path}. Resume with: "
+        msg += resume_hint
         print(msg)
         raise TrainingInterrupted(msg) from None
     finally:

@@ -69,6 +69,7 @@ from sonogym.envs.spec import (
 )
 from sonogym.geometry import relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
+from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 ObsMode = Literal["us", "us_heading", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
@@ -84,6 +85,8 @@ class NavigationConfig:
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
+    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
+    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
     obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
@@ -99,6 +102,9 @@ class NavigationConfig:
     w1: float = 0.045  # reward per mm of position progress (paper)
 
     def __post_init__(self) -> None:
+        object.__setattr__(
+            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
+        )
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.episode_length < 1:
@@ -183,6 +189,7 @@ class NavigationEnv(TorchVectorEnv):
         self._set_spaces(obs_space, spaces.Box(-bound, bound, (3,), np.float32))
         self._state = torch.zeros(n, 6, device=self.device)
         self._prev_state = torch.zeros(n, 6, device=self.device)
+        self.scene.randomize_imaging(cfg.imaging_randomization)
         self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
@@ -198,6 +205,8 @@ class NavigationEnv(TorchVectorEnv):
         self._state[env_ids] = self._measure(env_ids)
         if self.cfg.simulator == "learned":  # last, so the other draws match model-based runs
             self.scene.draw_nets(env_ids, self.rand(len(env_ids)))
+        if self.scene.imaging_randomization is not None:  # after: draws above stay the same
+            self.scene.draw_imaging(env_ids, self.rand(len(env_ids), 8))
 
     def _apply_action(self, actions: torch.Tensor) -> None:
         cfg = self.cfg
@@ -302,6 +311,7 @@ SPEC = TaskSpec(
         a2c=A2CParams(rollouts=16, mini_batches=32),
         timesteps=500_000,
         trunks={"paper": CONV4, "small": SMALL_CONV4},
+        env_kwargs_cpu={"imaging_randomization": True},
         image_height=200,
     ),
     dataset=DatasetSpec(

@@ -108,6 +108,7 @@ from sonogym.envs.spec import (
 )
 from sonogym.geometry import normalize, relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
+from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
 
 ObsMode = Literal["reconstruction", "state"]
@@ -124,6 +125,8 @@ class ReconstructionConfig:
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
+    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
+    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
     obs_mode: ObsMode = "reconstruction"  # Dict observation, or the privileged state
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
@@ -146,6 +149,9 @@ class ReconstructionConfig:
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (DESIGN.md §5)
 
     def __post_init__(self) -> None:
+        object.__setattr__(
+            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
+        )
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.episode_length < 1:
@@ -329,6 +335,7 @@ class ReconstructionEnv(TorchVectorEnv):
         g = torch.arange(size, dtype=torch.float32, device=dev)
         self._grid_xy = g - (size - 1) / 2
         self._grid_z = g + 0.5
+        self.scene.randomize_imaging(cfg.imaging_randomization)
         self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
@@ -356,6 +363,8 @@ class ReconstructionEnv(TorchVectorEnv):
             t[env_ids] = 0
         if self.cfg.simulator == "learned":  # last, so the other draws match model-based runs
             self.scene.draw_nets(env_ids, self.rand(len(env_ids)))
+        if self.scene.imaging_randomization is not None:  # after: draws above stay the same
+            self.scene.draw_imaging(env_ids, self.rand(len(env_ids), 8))
 
     def tangent_map(self) -> torch.Tensor:
         """(N, 2, 2) map from a tangential step (dx along x_U, dy along y_U0 = n x x_U) to the

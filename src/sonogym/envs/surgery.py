@@ -142,6 +142,7 @@ from sonogym.geometry import (
     matrix_from_axis_angle,
     quat_from_matrix,
 )
+from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 ObsMode = Literal["us", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
@@ -165,6 +166,8 @@ class SurgeryConfig:
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
+    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
+    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
     obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
@@ -196,6 +199,9 @@ class SurgeryConfig:
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
+        object.__setattr__(
+            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
+        )
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.side not in SIDES:
@@ -460,6 +466,7 @@ class SurgeryEnv(TorchVectorEnv):
         self._safe_steps = torch.zeros(n, **f32)
         self._tracking_error = torch.zeros(n, **f32)
         self.start_redraws = torch.zeros(n, dtype=torch.long, device=dev)
+        self.scene.randomize_imaging(cfg.imaging_randomization)
         self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
@@ -498,6 +505,8 @@ class SurgeryEnv(TorchVectorEnv):
         self._tracking_error[env_ids] = 0.0
         if cfg.simulator == "learned":  # last, so the other draws match model-based runs
             sc.draw_nets(env_ids, self.rand(k))
+        if sc.imaging_randomization is not None:  # after: draws above stay the same
+            sc.draw_imaging(env_ids, self.rand(k, 8))
         # The probe is still for the episode: image the volume once (it does not see the drill).
         if cfg.obs_mode != "state":
             self._image[env_ids] = sc.observe(cfg.obs_mode, env_ids)

@@ -257,7 +257,9 @@ def run_controllers(
     from sonogym.evaluation.episodes import run_episodes
 
     trained = run if isinstance(run, TrainedRun) else load_run(run)
-    env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device}
+    # evaluation images as simulated: training's per-episode imaging settings stay in training
+    env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device,
+                  "imaging_randomization": False}  # fmt: skip
     env = make_vec(trained.task, min(trials, envs or 16), **env_kwargs)
     out = {
         name: run_episodes(

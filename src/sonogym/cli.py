@@ -569,7 +569,17 @@ def sweep(
 
 @app.command("eval")
 def eval_(
-    run: Annotated[Path, typer.Option(help="Run directory written by `sonogym train`.")],
+    run: Annotated[
+        Path | None,
+        typer.Option(help="Run directory written by `sonogym train` or `sonogym il-train`."),
+    ] = None,
+    pretrained: Annotated[
+        str | None,
+        typer.Option(
+            help="A policy that ships with sonogym instead of --run ('list' lists them); "
+            "its files go to --out (default runs/pretrained-<name>)."
+        ),
+    ] = None,
     trials: Annotated[int, typer.Option(help="Episodes per controller.")] = 100,
     envs: Annotated[
         int | None, typer.Option(help="Parallel envs (default min(16, trials)).")
@@ -623,10 +633,25 @@ def eval_(
         ),
     ] = None,
 ) -> None:
-    """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
-    the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
+    """Evaluate a run's policy (or a shipped one), the task's expert and a random policy; print
+    and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
+    from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
     from sonogym.evaluation.rl_eval import evaluate_run, format_table
+
+    if (run is None) == (pretrained is None):
+        raise typer.BadParameter("give --run RUN or --pretrained NAME (one of them)")
+    if pretrained == "list":
+        typer.echo(shipped.listing())
+        return
+    if pretrained is not None:
+        if checkpoint is not None:
+            raise typer.BadParameter("--checkpoint is for --run; a pretrained policy has one")
+        try:
+            run, checkpoint = shipped.pretrained_dir(pretrained), shipped.weights(pretrained)
+        except ValueError as e:
+            raise typer.BadParameter(str(e)) from None
+        out = out or Path(f"runs/pretrained-{pretrained}")
 
     if protocol not in PROTOCOLS:
         raise typer.BadParameter(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
@@ -722,6 +747,27 @@ def report(
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
     typer.echo(f"wrote {md} and its tables and figures in {out}/")
+
+
+@app.command()
+def export(
+    run: Annotated[Path, typer.Option(help="Run folder written by `sonogym train`.")],
+    name: Annotated[str, typer.Option(help="Name of the shipped policy (e.g. navigation).")],
+    to: Annotated[
+        Path | None,
+        typer.Option(help="Folder of pretrained policies (default: the package's own)."),
+    ] = None,
+    checkpoint: Annotated[
+        Path | None, typer.Option(help="Checkpoint (default: the run's newest readable one).")
+    ] = None,
+    notes: Annotated[str, typer.Option(help="Text for the model card's notes.")] = "",
+) -> None:
+    """Make a run's policy a pretrained policy: its config, acting weights (safetensors) and a
+    model card from its checkpoint times and the evaluations in its folder."""
+    from sonogym.evaluation.pretrained import export_pretrained
+
+    dest = export_pretrained(run, name, to, checkpoint, notes)
+    typer.echo(f"wrote {dest}/ (config.json, policy.safetensors, model_card.json, model_card.md)")
 
 
 @app.command("lb-data")

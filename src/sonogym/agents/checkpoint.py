@@ -14,19 +14,62 @@ import torch
 from sonogym.agents.adapter import ObsLayout, SkrlEnvAdapter
 from sonogym.agents.networks import SharedActorCritic, log_std_ceiling, make_models
 from sonogym.envs.policy import StatelessPolicy
-from sonogym.runs import CheckpointError, load_weights
+from sonogym.runs import CheckpointError, atomic_write_bytes, load_weights
 
 _CKPT = re.compile(r"agent_(\d+)\.pt$")
 
 
+#: The modules an exported checkpoint keeps: what acting needs (no optimiser, no value).
+ACTING_MODULES = ("policy", "obs_standardizer", "cost_critic")
+
+
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
     """An agent checkpoint (skrl's ``{module name: state}`` dict), read without unpickling
-    code (``weights_only=True``): tensors, numbers, strings and containers only."""
+    code (``weights_only=True``): tensors, numbers, strings and containers only. A
+    ``.safetensors`` file (``export_acting_weights``) holds the acting modules' tensors."""
     path = Path(path)
-    state = load_weights(path, device, "agent checkpoint")
+    if path.suffix == ".safetensors":
+        state = _read_safetensors(path, device)
+    else:
+        state = load_weights(path, device, "agent checkpoint")
     if not isinstance(state, dict) or "policy" not in state:
         raise CheckpointError(f"{path} is not an agent checkpoint (no 'policy' entry)")
     return state
+
+
+def _read_safetensors(path: Path, device) -> dict:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    if not path.is_file():
+        raise FileNotFoundError(f"agent weights {path} not found")
+    try:
+        flat = load_file(str(path), device=str(device))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CheckpointError(f"{path} is not a readable safetensors file ({e})") from None
+    state: dict[str, dict[str, torch.Tensor]] = {}
+    for key, value in flat.items():
+        module, sep, name = key.partition("/")
+        if not sep:
+            raise CheckpointError(f"{path}: tensor {key!r} names no module (module/parameter)")
+        state.setdefault(module, {})[name] = value
+    return state
+
+
+def export_acting_weights(checkpoint: str | Path, dest: str | Path) -> Path:
+    """The acting modules (``ACTING_MODULES``) of ``checkpoint`` as one safetensors file at
+    ``dest`` (tensors ``<module>/<parameter>``; nothing to unpickle), written atomically."""
+    from safetensors.torch import save
+
+    state = read_checkpoint(checkpoint)
+    flat = {
+        f"{m}/{k}": v.detach().cpu().contiguous()
+        for m in ACTING_MODULES
+        if m in state
+        for k, v in state[m].items()
+        if isinstance(v, torch.Tensor)
+    }
+    return atomic_write_bytes(dest, save(flat))
 
 
 def checkpoints(out: str | Path) -> list[tuple[int, Path]]:

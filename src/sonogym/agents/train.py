@@ -32,6 +32,7 @@ and says how to resume.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
@@ -257,6 +258,7 @@ def _run_training(
     obs, _ = adapter.reset()
     if log is not _quiet:
         _announce(cfg, out, start, log, agent, adapter, obs)
+    clock = RunClock(ckpt_dir, start)
     bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
     done = start
     recent = _EpisodeMeans()
@@ -291,12 +293,14 @@ def _run_training(
             done = t + 1
             if done % ckpt_interval == 0 and done < steps:
                 path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+                clock.record(done)
                 if on_checkpoint is not None:
                     on_checkpoint(done, path, recent.pop())
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+        clock.record(done)
         msg = (
             f"interrupted after {done} of {steps} steps; saved {path}. Resume with: sonogym "
             f"train --task {task} --algo {algo} --out {out} --resume"
@@ -310,9 +314,43 @@ def _run_training(
         torch.set_num_threads(threads_before)
     bar.close()
     final = save_agent(agent, ckpt_dir / f"agent_{steps}.pt")
+    clock.record(steps)
     if on_checkpoint is not None:
         on_checkpoint(steps, final, recent.pop())
     return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+class RunClock:
+    """CPU and wall seconds a run has spent by each checkpoint, across resumes:
+    ``checkpoints/times.json`` = {env steps: {"cpu_s", "wall_s"}} (CPU: this process's, all its
+    threads; what a model card reports as the training's cost)."""
+
+    FILE = "times.json"
+
+    def __init__(self, ckpt_dir: Path, start: int) -> None:
+        self.path = Path(ckpt_dir) / self.FILE
+        self.times = read_times(ckpt_dir)
+        base = self.times.get(start, {"cpu_s": 0.0, "wall_s": 0.0})
+        # a resume continues from its checkpoint's totals; later entries were overtaken
+        self.times = {t: v for t, v in self.times.items() if t <= start}
+        self.cpu0, self.wall0 = time.process_time() - base["cpu_s"], time.time() - base["wall_s"]
+
+    def record(self, step: int) -> None:
+        self.times[step] = {
+            "cpu_s": round(time.process_time() - self.cpu0, 1),
+            "wall_s": round(time.time() - self.wall0, 1),
+        }
+        atomic_write_json(self.path, {str(t): v for t, v in sorted(self.times.items())})
+
+
+def read_times(ckpt_dir: str | Path) -> dict[int, dict[str, float]]:
+    """A run's ``checkpoints/times.json`` as {env steps: {"cpu_s", "wall_s"}} ({} if absent)."""
+    path = Path(ckpt_dir) / RunClock.FILE
+    try:
+        raw = json.loads(path.read_text())
+        return {int(t): {k: float(v[k]) for k in ("cpu_s", "wall_s")} for t, v in raw.items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 class _EpisodeMeans:

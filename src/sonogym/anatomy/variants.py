@@ -301,7 +301,9 @@ def _warp(source: Patient, p: VariantParams, rng) -> tuple[np.ndarray, np.ndarra
         fade = np.clip((_SIZE_FADE[1] - r) / (_SIZE_FADE[1] - _SIZE_FADE[0]), 0.0, 1.0)
         s = 1.0 + (spine.at(size, z) - 1.0) * fade
         x, y = ax + (x - ax) / s, ay + (y - ay) / s
-        idx = [(v - o) / sp for v, o, sp in zip((x, y, z), source.origin, source.spacing)]
+        idx = [
+            (v - o) / sp for v, o, sp in zip((x, y, z), source.origin, source.spacing, strict=True)
+        ]
         sl = np.s_[:, :, k0 : k0 + len(zs)]
         ct[sl] = ndimage.map_coordinates(src_ct, idx, order=1, mode="constant", cval=-1024.0)
         labels[sl] = ndimage.map_coordinates(src_lab, idx, order=0, mode="constant", cval=0)

@@ -449,17 +449,20 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
 
 def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
     """Patients from the command line: an integer is a phantom seed, ``A-B`` (digits, A <= B)
-    the seeds A..B inclusive, anything else a subject folder; None when none were given."""
+    the seeds A..B inclusive, ``DIR@N`` variant N of the subject in folder DIR and ``DIR@A-B``
+    its variants A..B (unless that is itself an existing path), anything else a subject folder;
+    None when none were given."""
     if not specs:
         return None
     out: list[int | str] = []
     for p in specs:
         m = re.fullmatch(r"(\d+)-(\d+)", p.strip())
-        if m:
-            lo, hi = int(m.group(1)), int(m.group(2))
+        v = None if Path(p).exists() else re.fullmatch(r"(.+)@(\d+)-(\d+)", p.strip())
+        if m or v:
+            lo, hi = (int(m.group(1)), int(m.group(2))) if m else (int(v[2]), int(v[3]))
             if lo > hi:
                 raise typer.BadParameter(f"patient range {p!r}: {lo} > {hi}; write it low-high")
-            out.extend(range(lo, hi + 1))
+            out.extend(range(lo, hi + 1) if m else (f"{v[1]}@{i}" for i in range(lo, hi + 1)))
         else:
             out.append(int(p) if p.lstrip("-").isdigit() else p)
     return tuple(out)

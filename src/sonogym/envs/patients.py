@@ -1,5 +1,5 @@
-"""Turn an env's ``patients`` option (phantom seeds and/or TotalSegmentator folders) into
-Patients, shared between envs of one process."""
+"""Turn an env's ``patients`` option (phantom seeds, TotalSegmentator folders and/or variants of
+them, ``"DIR@7"``) into Patients, shared between envs of one process."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from sonogym.anatomy import (
     load_phantom,
     load_totalsegmentator,
 )
+from sonogym.anatomy.variants import VariantParams, load_variant, parse_variant
 
 PatientSpec = int | str | Path
 
@@ -44,8 +45,12 @@ def _load(spec: int | str, spacing: float) -> Patient:
     if isinstance(spec, int):
         patient = load_phantom(spec, PhantomParams(spacing=spacing))
     else:
+        variant = parse_variant(spec)
         try:
-            patient = load_totalsegmentator(spec, spacing=spacing, target=TARGET)
+            if variant is not None:
+                patient = load_variant(*variant, VariantParams(spacing=spacing))
+            else:
+                patient = load_totalsegmentator(spec, spacing=spacing, target=TARGET)
         except (PatientError, FileNotFoundError) as e:
             if spec in str(e):
                 raise
@@ -69,12 +74,14 @@ def _load(spec: int | str, spacing: float) -> Patient:
 
 
 def resolve_patients(specs: Sequence[PatientSpec] | PatientSpec, spacing: float) -> list[Patient]:
-    """Patients for a list of phantom seeds (int) and/or folders (str or Path).
+    """Patients for a list of phantom seeds (int), folders (str or Path) and variants of folders
+    (``"DIR@7"``: variant 7 of the subject in DIR, ``sonogym.anatomy.variants``).
 
-    Phantoms come from the on-disk cache (built once); a patient's volumes are shared in-process
-    while anything holds them, its skin and landmarks are kept (``CACHED_MODELS``).
-    A folder is loaded with its L4 required whole (``load_totalsegmentator(target="L4")``) and
-    its L4 frame computed; any problem raises an error naming the folder.
+    Phantoms and variants come from the on-disk cache (built once); a patient's volumes are
+    shared in-process while anything holds them, its skin and landmarks are kept
+    (``CACHED_MODELS``). A folder is loaded with its L4 required whole
+    (``load_totalsegmentator(target="L4")``) and its L4 frame computed; any problem raises an
+    error naming the folder.
     """
     if isinstance(specs, int | str | Path):
         specs = [specs]
@@ -84,7 +91,8 @@ def resolve_patients(specs: Sequence[PatientSpec] | PatientSpec, spacing: float)
     for s in specs:
         if isinstance(s, bool) or not isinstance(s, int | str | Path):
             raise TypeError(
-                f"patient {s!r}: use an int phantom seed or a TotalSegmentator folder path"
+                f"patient {s!r}: use an int phantom seed, a TotalSegmentator folder path or "
+                "'FOLDER@N' (variant N of that subject)"
             )
         out.append(_load(s if isinstance(s, int) else str(Path(s).resolve()), float(spacing)))
     return out

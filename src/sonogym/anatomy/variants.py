@@ -50,11 +50,13 @@ VARIANT_VERSION = 1
 #: Control-point spacing (m) and per-axis standard deviation (m) of the random displacement.
 LATTICE = 0.05
 JITTER = 0.0015
-#: Most memory (bytes) a variant's CT and labels may take; the crop narrows to keep to it.
-MAX_VARIANT_BYTES = 40_000_000
-#: Crop around the lumbar spine (m): half-width, behind the skin, in front of the bodies, and
-#: above L1 / below L5.
-_CROP_HALF_WIDTH = 0.09
+#: Most memory (bytes) a variant's full CT and labels may take while it is built and cropped
+#: (an env keeps only its slicer's crop, ~30 MB at 1 mm); the crop narrows to keep to it.
+MAX_VARIANT_BYTES = 64_000_000
+#: Crop around the lumbar spine (m): half-width (navigation's +-90 mm workspace plus the image's
+#: half-width, so no probe image reaches past the volume), behind the skin, in front of the
+#: bodies, and above L1 / below L5.
+_CROP_HALF_WIDTH = 0.13
 _CROP_BEHIND_SKIN = 0.025
 _CROP_FRONT = 0.045
 _CROP_ENDS = 0.03
@@ -213,7 +215,7 @@ class _Spine:
 
 def variant_grid(source: Patient, spacing: float) -> tuple[np.ndarray, tuple[int, int, int]]:
     """Origin (3,) in {P} and shape of the grid variants of ``source`` get at ``spacing``: the
-    lumbar spine (+-30 mm past L1 and L5), +-90 mm to the sides (narrower where the CT and labels
+    lumbar spine (+-30 mm past L1 and L5), +-130 mm to the sides (narrower where the CT and labels
     would exceed ``MAX_VARIANT_BYTES``), from behind the skin (room for the thickest soft tissue)
     to 45 mm in front of the bodies."""
     return _crop_box(source, _Spine(source), spacing)

@@ -675,9 +675,10 @@ def eval_(
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
-    typer.echo(format_table(results), nl=False)
     log = name or protocol or "custom"
     stem = "eval" if log == "idt" else f"eval-{log}"
+    table = Path(out or run) / f"{stem}.md"
+    typer.echo(table.read_text() if table.is_file() else format_table(results), nl=False)
     typer.echo(
         f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"
     )

@@ -298,7 +298,7 @@ SPEC = TaskSpec(
     expert=expert,
     expert_label="expert",
     metrics=(
-        Metric("position_error_mm", "position error", "mm"),
+        Metric("position_error_mm", "position error", "mm", tolerance=10.0),
         Metric("angle_error_deg", "rotation error", "deg"),
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),

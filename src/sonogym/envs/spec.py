@@ -46,6 +46,9 @@ class Metric:
     unit: str
     scale: float = 1.0
     better: Literal["lower", "higher"] = "lower"
+    #: Evaluation tables also count the episodes within this of the goal (in the env's unit,
+    #: on the ``better`` side), e.g. navigation's 10 mm; None: no such count.
+    tolerance: float | None = None
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -99,6 +99,7 @@ class NavigationConfig:
     w1: float = 0.045  # reward per mm of position progress (paper)
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.episode_length < 1:

@@ -92,7 +92,7 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -146,6 +146,7 @@ class ReconstructionConfig:
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (DESIGN.md §5)
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.episode_length < 1:

@@ -21,6 +21,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from sonogym.envs.base import check_number_fields
+
 ExpertFn = Callable[[Any, dict[str, Any]], torch.Tensor]
 
 #: Conv layers of an image trunk: (out_channels, kernel, stride) per layer.
@@ -140,6 +142,9 @@ class PPOParams:
     entropy_loss_scale: float = 0.0  # reference
     time_limit_bootstrap: bool = True  # see sonogym.agents.configs
 
+    def __post_init__(self) -> None:
+        check_algo_params(self, ("rollouts", "learning_epochs", "mini_batches"))
+
 
 @dataclass(frozen=True)
 class A2CParams:
@@ -155,6 +160,28 @@ class A2CParams:
     grad_norm_clip: float = 1.0
     entropy_loss_scale: float = 0.0
     time_limit_bootstrap: bool = True
+
+    def __post_init__(self) -> None:
+        check_algo_params(self, ("rollouts", "mini_batches"))
+
+
+def check_algo_params(p: PPOParams | A2CParams, counts: tuple[str, ...]) -> None:
+    """Refuse settings no run can train with, naming the field: counts below 1, a learning rate
+    that is not positive, a discount or GAE lambda outside [0, 1], a negative clip, and any
+    NaN, inf or non-integer count (``check_number_fields``)."""
+    check_number_fields(p)
+    name = type(p).__name__
+    for f in counts:
+        if getattr(p, f) < 1:
+            raise ValueError(f"{name}.{f} must be >= 1, got {getattr(p, f)}")
+    if not p.learning_rate > 0:
+        raise ValueError(f"{name}.learning_rate must be > 0, got {p.learning_rate}")
+    for f in ("discount_factor", "gae_lambda"):
+        if not 0 <= getattr(p, f) <= 1:
+            raise ValueError(f"{name}.{f} must be in [0, 1], got {getattr(p, f)}")
+    for f in ("kl_threshold", "grad_norm_clip", "value_clip", "ratio_clip", "value_loss_scale"):
+        if getattr(p, f, 0) < 0:
+            raise ValueError(f"{name}.{f} must be >= 0, got {getattr(p, f)}")
 
 
 @dataclass(frozen=True)

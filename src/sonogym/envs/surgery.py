@@ -118,7 +118,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.spec import (
     CONV3,
@@ -196,6 +196,7 @@ class SurgeryConfig:
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.side not in SIDES:

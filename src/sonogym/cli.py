@@ -551,6 +551,12 @@ def sweep(
                     address=address,
                     max_concurrent=max_concurrent, resume=resume, force=force, log=typer.echo,
                     **options)  # fmt: skip
+    failed = [r for r in res.trials if r.status == "ERROR"]
+    if failed and len(failed) == len(res.trials):  # nothing trained: not a success
+        raise ValueError(
+            f"all {len(failed)} trials failed (first, {failed[0].name}: {failed[0].error}); "
+            f"see {res.out / 'sweep.md'}, fix the options and start again with --force"
+        )
     from sonogym.evaluation.curves import plot_curves
 
     runs = sorted(p for p in (res.out / "runs").glob("*") if (p / "config.json").is_file())

@@ -90,13 +90,20 @@ def check_key(key: str) -> None:
 
 
 def apply(base: TrainConfig, params: dict[str, Any]) -> TrainConfig:
-    """``base`` with a trial's seed and grid values."""
+    """``base`` with a trial's seed and grid values, checked as a run's config is (an unknown
+    setting, a value the algorithm's table, the task config or the env config refuses:
+    ``ValueError`` naming it), without building anything."""
     rl = base.rl
     for key, v in params.items():
         if key == "seed":
             continue
         head, _, field = key.partition(".")
         if head in ("ppo", "a2c"):
+            names = [f.name for f in dataclasses.fields(getattr(rl, head))]
+            if field not in names:
+                raise ValueError(
+                    f"grid key {key!r}: {head} has no setting {field!r}; its settings are {names}"
+                )
             table = dataclasses.replace(getattr(rl, head), **{field: v})
             rl = dataclasses.replace(rl, **{head: table})
         elif head == "env":
@@ -139,8 +146,12 @@ def sweep(
         for k in grid:
             check_key(k)
         base = resolve_train_config(task, algo, **train_options)
+        configs = []
         for values in _grid_points(grid):  # every trial's config must be valid up front
-            apply(base, values)
+            try:
+                configs.append(apply(base, values))
+            except ValueError as e:
+                raise ValueError(f"grid point {values}: {e}; change --grid") from None
         prepare_output(out, resume=False, force=force, what="sweep", marker=SWEEP_FILE)
         spec = {"base": base.to_dict(), "grid": grid, "seeds": seeds, "samples": samples}
         atomic_write_json(out / SWEEP_FILE, spec)

@@ -158,11 +158,27 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     from tqdm import tqdm
 
     pcfg = cfg.resolved_policy_config()
-    out, old, state = _prepare_out(cfg)
+    # the dataset is read and checked (its statistics, the recorded task's features, every
+    # numeric value) before the run folder is touched
     data = Path(cfg.data).resolve()
     info = read_info(data)
     stats = load_stats(data)
     features = PolicyFeatures.from_info(info["features"])
+    recording = _recording(data)
+    if recording.get("task"):
+        from sonogym.imitation.record import check_task_features
+
+        check_task_features(recording["task"], features, f"{data} (meta/sonogym.json)")
+    ds = LeRobotFrames(
+        data,
+        delta_indices=pcfg.delta_indices(features),
+        episodes=None if cfg.episodes is None else list(cfg.episodes),
+        drop_n_last_frames=pcfg.drop_n_last_frames,
+        image_cache=cfg.image_cache,
+    )
+    if len(ds) == 0:
+        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
+    out, old, state = _prepare_out(cfg)
     dev = torch.device(cfg.device)
 
     torch.manual_seed(cfg.seed)
@@ -173,7 +189,6 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     loader_gen = torch.Generator().manual_seed(cfg.seed + 2)
 
-    recording = _recording(data)
     run_cfg = {
         # what evaluation needs without the dataset: the task and the env it imaged
         "task": recording.get("task"),
@@ -219,15 +234,6 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
         start = int(state["step"])
     runio.write_run_config(out, run_cfg)
 
-    ds = LeRobotFrames(
-        data,
-        delta_indices=pcfg.delta_indices(features),
-        episodes=None if cfg.episodes is None else list(cfg.episodes),
-        drop_n_last_frames=pcfg.drop_n_last_frames,
-        image_cache=cfg.image_cache,
-    )
-    if len(ds) == 0:
-        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
     loader = torch.utils.data.DataLoader(
         ds,
         batch_size=cfg.batch_size,

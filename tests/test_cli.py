@@ -19,3 +19,14 @@ def test_phantom_refuses_an_existing_subject_folder_unless_forced(tmp_path):
     res = runner.invoke(app, [*args, "--force"])
     assert res.exit_code == 0, res.output
     assert (out / "ct.nii.gz").stat().st_size > 1000 and (out / "segmentations").is_dir()
+
+
+def test_a_symlink_loop_given_as_a_patient_is_named_not_a_traceback(tmp_path):
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    out = tmp_path / "demo"
+    res = CliRunner().invoke(app, ["demo", "--patient", str(tmp_path / "a"), "--out", str(out)])
+    # a ValueError is what main() prints as one "sonogym: error:" line
+    assert isinstance(res.exception, ValueError), res.exception
+    msg = str(res.exception)
+    assert f"patient folder {tmp_path / 'a'}" in msg and "symlink" in msg

@@ -205,3 +205,21 @@ def test_a_checkpoint_that_does_not_fit_the_edited_config_is_named(run, tmp_path
 
     with pytest.raises(CheckpointError, match="agent_32.pt holds no 'cost_critic'"):
         load_module(torch.nn.Linear(1, 1), r / "checkpoints" / "agent_32.pt", "cost_critic", "cpu")
+
+
+def test_training_memory_that_does_not_fit_is_refused_before_the_agent_exists(
+    tmp_path, monkeypatch
+):
+    import sonogym.memory
+    from sonogym.agents.train import TRAINING_MEMORY_FACTOR
+    from sonogym.memory import ResourceLimitError
+
+    # the env fits (its own check reads the real free memory); training sees 1 MiB
+    monkeypatch.setattr(sonogym.memory, "free_memory", lambda device: 2**20)
+    with pytest.raises(ResourceLimitError) as e:
+        _tiny(tmp_path / "r")
+    need = TRAINING_MEMORY_FACTOR * 32 * 2 * (50 * 37) * 4  # rollouts x envs x obs x float32
+    msg = str(e.value)
+    assert "ppo training of 2 envs (32 rollout steps of 1850 observation floats" in msg
+    assert f"{need / 2**30:.2f} GiB of memory" in msg and "fewer envs (--envs)" in msg
+    assert not (tmp_path / "r" / "checkpoints").exists()

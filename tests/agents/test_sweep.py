@@ -97,6 +97,7 @@ def test_cli_resume_refuses_options_that_would_change_the_sweep(tmp_path):
         ({"ppo.rollouts": [0]}, "PPOParams.rollouts must be >= 1"),
         ({"net": ["small", "huge"]}, "unknown net 'huge'"),
         ({"ppo.learning_rate": [float("nan")]}, "learning_rate must be a finite number"),
+        ({"num_envs": [100_000_000]}, "sweep trials at once needs about"),
     ],
 )
 def test_every_grid_point_is_checked_before_the_sweep_starts(grid, message, tmp_path):

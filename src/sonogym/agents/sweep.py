@@ -113,6 +113,28 @@ def apply(base: TrainConfig, params: dict[str, Any]) -> TrainConfig:
     return dataclasses.replace(base, rl=rl, seed=int(params.get("seed", base.seed)))
 
 
+def check_sweep_memory(configs: list[TrainConfig], trials: int, max_concurrent: int | None):
+    """Refuse a sweep whose trials running at once (``max_concurrent``, else as many as the
+    CPUs hold at each trial's threads) would not fit in memory with their envs, the largest
+    grid point counted for each (each trial checks its own training memory when it starts)."""
+    import os
+
+    from sonogym.envs.footprint import config_memory
+    from sonogym.envs.registry import env_config, get_task
+    from sonogym.memory import check_fits, free_memory
+
+    threads = max(c.threads or 1 for c in configs)
+    at_once = min(trials, max_concurrent or max(1, (os.cpu_count() or 1) // threads))
+    need = max(
+        config_memory(get_task(c.task).memory, c.rl.num_envs, env_config(c.task, c.rl.env_kwargs))
+        for c in configs
+    )
+    check_fits(
+        need * at_once, free_memory(configs[0].device), f"{at_once} sweep trials at once",
+        "memory", "lower --max-concurrent, the envs per trial (--envs) or the patients",
+    )  # fmt: skip
+
+
 def trial_name(task: str, algo: str, params: dict[str, Any]) -> str:
     parts = [f"{k}={v}" for k, v in sorted(params.items()) if k != "seed"]
     return "-".join([task, algo, *parts, f"s{params.get('seed', 0)}"]).replace("/", "_")
@@ -152,6 +174,7 @@ def sweep(
                 configs.append(apply(base, values))
             except ValueError as e:
                 raise ValueError(f"grid point {values}: {e}; change --grid") from None
+        check_sweep_memory(configs, len(configs) * seeds * samples, max_concurrent)
         prepare_output(out, resume=False, force=force, what="sweep", marker=SWEEP_FILE)
         spec = {"base": base.to_dict(), "grid": grid, "seeds": seeds, "samples": samples}
         atomic_write_json(out / SWEEP_FILE, spec)

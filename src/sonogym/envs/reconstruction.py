@@ -93,6 +93,7 @@ from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -100,6 +101,7 @@ from sonogym.envs.spec import (
     SMALL_CONV3,
     A2CParams,
     Demo,
+    EnvMemory,
     Metric,
     PPOParams,
     TaskSpec,
@@ -255,6 +257,7 @@ class ReconstructionEnv(TorchVectorEnv):
                 f"target_vertebra {cfg.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
             )
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         self.scene = ProbeScene.from_config(cfg, num_envs, self.device, render=False)
         dev, n, size = self.device, num_envs, cfg.volume_size
@@ -631,6 +634,7 @@ SPEC = TaskSpec(
     demo=Demo(
         image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
     ),
+    memory=EnvMemory(per_env=2.24e6, per_patient=191e6, load_peak=220e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

@@ -236,6 +236,19 @@ class TrainingDefaults:
 
 
 @dataclass(frozen=True)
+class EnvMemory:
+    """A task env's resident memory, measured on the CPU as the RSS growth of a fresh process
+    that builds the env with its default options and steps it with the expert
+    (``sonogym.envs.footprint`` documents the runs): bytes per env, bytes per patient at 1 mm
+    voxels, and the transient of loading one patient at 1 mm. The patient terms scale with the
+    voxel count, (1 mm / spacing)^3."""
+
+    per_env: float  # bytes
+    per_patient: float  # bytes at 1 mm voxels
+    load_peak: float  # bytes at 1 mm voxels
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """Everything the rest of the package knows about a task (see the module docstring).
 
@@ -254,6 +267,7 @@ class TaskSpec:
     track: Track
     demo: Demo
     training: TrainingDefaults
+    memory: EnvMemory  # what ``sonogym.envs.footprint`` estimates a run's memory from
     dataset: DatasetSpec | None = None
     # per obs_mode, the version of what the observation means (absent: 1); bumped when it
     # changes, so a policy trained on an older one is refused instead of silently misread

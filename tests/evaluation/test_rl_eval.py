@@ -120,8 +120,11 @@ def test_tables_give_the_median_and_the_share_within_a_metrics_tolerance():
 
     from sonogym.evaluation.rl_eval import distribution, format_table
 
-    d = distribution("navigation", {"position_error_mm": np.array([1.0, 5.0, 10.0, 12.0, 30.0]),
-                                    "angle_error_deg": np.array([1.0, 2.0, 3.0, 4.0, 90.0])})  # fmt: skip
+    errors = {
+        "position_error_mm": np.array([1.0, 5.0, 10.0, 12.0, 30.0]),
+        "angle_error_deg": np.array([1.0, 2.0, 3.0, 4.0, 90.0]),
+    }
+    d = distribution("navigation", errors)
     assert d["position_error_mm"] == {"median": 10.0, "within": 0.6, "tolerance": 10.0}
     assert d["angle_error_deg"] == {"median": 3.0}  # no tolerance declared
     table = format_table({"policy": {"position_error_mm": (11.6, 10.6)}}, {"policy": d})

@@ -50,7 +50,8 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -60,6 +61,7 @@ from sonogym.envs.spec import (
     DatasetPreset,
     DatasetSpec,
     Demo,
+    EnvMemory,
     Feature,
     Metric,
     PPOParams,
@@ -102,6 +104,7 @@ class NavigationConfig:
     w1: float = 0.045  # reward per mm of position progress (paper)
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         object.__setattr__(
             self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
         )
@@ -156,6 +159,7 @@ class NavigationEnv(TorchVectorEnv):
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         cfg = make_config(NavigationConfig, kwargs)
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         # navigation reads the volumes only through the slicer: patients load one at a time
         self.scene = ProbeScene.from_config(
@@ -303,6 +307,7 @@ SPEC = TaskSpec(
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
     demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
+    memory=EnvMemory(per_env=0.88e6, per_patient=165e6, load_peak=125e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

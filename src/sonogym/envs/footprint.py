@@ -10,17 +10,17 @@ three expert steps:
 =============== ====================== ======================= ==========================
 task            per env (1 -> 64 envs)  per patient (1 -> 3)     load peak (high-water mark)
 =============== ====================== ======================= ==========================
-navigation      0.88 MB (1 -> 256)      165 MB (1 -> 4)          125 MB
-reconstruction  2.24 MB                 191 MB                   220 MB
-surgery         0.81 MB                 162 MB                   136 MB
+navigation      0.88 MB (1 -> 256)      39 MB (1 -> 3)           125 MB
+reconstruction  2.24 MB                 165 MB                   220 MB
+surgery         0.81 MB                 127 MB                   136 MB
 =============== ====================== ======================= ==========================
 
-``BASE`` is what is left of one env on one patient (25-60 MB); navigation at 2 mm (25.5 MB per
-patient, not 165 / 8) gives the part of a patient that does not scale with its voxels,
-``PATIENT_FIXED``. Against the measured peak RSS (MB): navigation 1 env 351 estimated / 349
-measured, 256 envs 575 / 450 (the load peak has passed before the envs' buffers grow),
-2 patients 516 / 558, 4 patients 846 / 812, 3 patients at 2 mm 154 / 144; reconstruction
-3 patients 855 / 834; surgery 3 patients 683 / 642. Real TotalSegmentator folders are counted
+Per patient is the growth of the peak from 1 to 3 patients (4 envs, 2026-11-27). Navigation
+crops each patient as it loads and keeps no full volume, so its patients cost their slicer crop
+(its resident memory grows by 29.5 MB per patient); reconstruction and surgery load every
+patient whole before cropping (resident growth 83 and 34.5 MB). ``BASE`` is what is left of one
+env on one patient (25-60 MB); ``PATIENT_FIXED`` the part of a patient that does not scale with
+its voxels (surface maps, landmarks). Real TotalSegmentator folders are counted
 as phantoms at the same spacing (their loader checks its own peak). Other options move the
 figure: ``obs_mode="state"`` renders no images (less), ``crop_to_reach=False`` keeps whole
 volumes (more), the learned simulator adds its networks.

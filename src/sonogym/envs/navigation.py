@@ -307,7 +307,7 @@ SPEC = TaskSpec(
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
     demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
-    memory=EnvMemory(per_env=0.88e6, per_patient=165e6, load_peak=125e6),  # measured, bytes
+    memory=EnvMemory(per_env=0.88e6, per_patient=39e6, load_peak=125e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

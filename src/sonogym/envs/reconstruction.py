@@ -643,7 +643,7 @@ SPEC = TaskSpec(
     demo=Demo(
         image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
     ),
-    memory=EnvMemory(per_env=2.24e6, per_patient=191e6, load_peak=220e6),  # measured, bytes
+    memory=EnvMemory(per_env=2.24e6, per_patient=165e6, load_peak=220e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

@@ -663,7 +663,7 @@ SPEC = TaskSpec(
     demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
     # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
-    memory=EnvMemory(per_env=0.81e6, per_patient=162e6, load_peak=136e6),  # measured, bytes
+    memory=EnvMemory(per_env=0.81e6, per_patient=127e6, load_peak=136e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),
         ppo=PPOParams(

@@ -65,7 +65,8 @@ def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
     )
     assert given.rl.env_kwargs == {"w5": 5.0, "obs_mode": "state"}
     nav = resolve_train_config("navigation", "ppo", preset="cpu")
-    assert nav.rl.env_kwargs == {}  # tasks without CPU env options train on the env defaults
+    assert nav.rl.env_kwargs == {"imaging_randomization": True}  # navigation's CPU option
+    assert resolve_train_config("reconstruction", "ppo", preset="cpu").rl.env_kwargs == {}
     back = TrainConfig.from_dict(json.loads(json.dumps(cpu.to_dict())))
     assert back.rl.env_kwargs == {"w5": 50.0}  # config.json records it for eval and resume
 

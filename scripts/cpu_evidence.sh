@@ -1,6 +1,6 @@
 #!/bin/bash
-# The CPU training runs, evaluations and reports behind docs/agents.md ("CPU training runs")
-# and docs/results.md, in order (many hours on one core); run from the repo root after
+# The CPU training runs, evaluations and reports behind docs/results.md, in order (many hours
+# on one core); run from the repo root after
 # `make install`. Each step can be rerun alone; `sonogym train --resume` continues a run.
 set -euo pipefail
 S=".venv/bin/sonogym"

@@ -411,7 +411,8 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
     """``--env-option KEY=VALUE`` items -> env keyword arguments; values read as int, float,
     true/false/none or text (as ``sonogym sweep``'s grid), comma-separated for an option whose
     default is a tuple. Names an unknown option, a malformed item, a repeated key, a non-number
-    for a numeric option and an option that has its own flag."""
+    for a numeric option, an option that has its own flag, and whatever the task's config
+    refuses (NaN, inf or 1e309 for a number, 2.5 for an integer option: 2.0 is taken as 2)."""
     from sonogym.agents.sweep import parse_value
     from sonogym.envs.registry import get_task
 
@@ -419,9 +420,11 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
     fields = sorted(f.name for f in dataclasses.fields(config_cls))
     defaults = config_cls()
     out: dict[str, Any] = {}
+    given: dict[str, str] = {}  # the text as typed, for the messages
     for item in items or []:
         key, sep, value = item.partition("=")
         key = key.strip()
+        given[key] = value.strip()
         if not sep or not key or not value.strip():
             raise typer.BadParameter(f"--env-option {item!r}: write KEY=VALUE, e.g. w5=50")
         if key in _FLAGGED_ENV_OPTIONS:
@@ -444,6 +447,15 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
             raise typer.BadParameter(
                 f"--env-option {key}={value}: expected a number (default {default!r})"
             )
+    for key, value in out.items():  # the config's own checks (finite numbers, integers, ranges)
+        try:
+            out[key] = getattr(config_cls(**{key: value}), key)  # 2.0 for an integer: 2
+        except (TypeError, ValueError) as e:
+            raise typer.BadParameter(f"--env-option {key}={given[key]}: {e}") from None
+    try:
+        config_cls(**out)
+    except (TypeError, ValueError) as e:
+        raise typer.BadParameter(f"--env-option: {e}") from None
     return out
 
 
@@ -562,6 +574,12 @@ def sweep(
                     address=address,
                     max_concurrent=max_concurrent, resume=resume, force=force, log=typer.echo,
                     **options)  # fmt: skip
+    failed = [r for r in res.trials if r.status == "ERROR"]
+    if failed and len(failed) == len(res.trials):  # nothing trained: not a success
+        raise ValueError(
+            f"all {len(failed)} trials failed (first, {failed[0].name}: {failed[0].error}); "
+            f"see {res.out / 'sweep.md'}, fix the options and start again with --force"
+        )
     from sonogym.evaluation.curves import plot_curves
 
     runs = sorted(p for p in (res.out / "runs").glob("*") if (p / "config.json").is_file())
@@ -675,9 +693,10 @@ def eval_(
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
-    typer.echo(format_table(results), nl=False)
     log = name or protocol or "custom"
     stem = "eval" if log == "idt" else f"eval-{log}"
+    table = Path(out or run) / f"{stem}.md"
+    typer.echo(table.read_text() if table.is_file() else format_table(results), nl=False)
     typer.echo(
         f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"
     )

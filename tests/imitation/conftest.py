@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from sonogym.imitation.writer import DatasetWriter
@@ -32,6 +36,20 @@ def random_episodes(n: int, seed: int = 0, lengths=None) -> list[dict[str, np.nd
             }
         )
     return out
+
+
+def set_value(root, key: str, frame: int, component: int, value: float) -> Path:
+    """Overwrite one value of a numeric feature in the dataset's one data file, as a corrupt
+    or hand-edited file holds it (the writer refuses NaN); returns the file."""
+    path = Path(root) / "data" / "chunk-000" / "file-000.parquet"
+    t = pq.read_table(path)
+    a = np.asarray(t.column(key).combine_chunks().flatten()).reshape(len(t), -1).copy()
+    a[frame, component] = value
+    i = t.schema.get_field_index(key)
+    flat = pa.array(a.reshape(-1), pa.float32())
+    col = pa.FixedSizeListArray.from_arrays(flat, a.shape[1])
+    pq.write_table(t.set_column(i, t.schema.field(i), col), path)
+    return path
 
 
 def write(root, episodes, **kw) -> DatasetWriter:

@@ -4,6 +4,7 @@ changed options by name, Ctrl-C saves and says how to resume, a broken config.js
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import torch
@@ -193,3 +194,75 @@ def test_an_undecodable_frame_is_named_and_training_saves_before_it_stops(
     out = capsys.readouterr().out
     step = int(re.search(r"stopped at step (\d+) of 200", out).group(1))
     assert [s for s, _ in checkpoints(run)] == [step] and "--resume" in out
+
+
+def test_a_corrupt_dataset_is_refused_before_the_run_folder_is_touched(blob_dataset, tmp_path):
+    import shutil
+
+    from conftest import set_value
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    train_il(_cfg(blob_dataset, run, steps=10))
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    data = tmp_path / "nan"
+    shutil.copytree(blob_dataset, data)
+    set_value(data, "action", 30, 1, float("nan"))  # one NaN trained all-NaN weights, exit 0
+    with pytest.raises(ValueError, match=r"episode 1, frame 6, column action\[1\] is nan"):
+        train_il(_cfg(data, run, steps=10, force=True))
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before  # not replaced
+    with pytest.raises(ValueError, match="frame 6"):
+        train_il(_cfg(data, tmp_path / "new", steps=10))
+    assert not (tmp_path / "new").exists()
+
+
+def _as_navigation_dataset(blob_dataset, tmp_path):
+    """The blob dataset with a recording note that says navigation (its features are not)."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(blob_dataset, data)
+    atomic_write_json(data / "meta" / "sonogym.json", {"task": "navigation", "env_kwargs": {}})
+    return data
+
+
+def test_a_dataset_of_another_task_is_refused_at_il_train(blob_dataset, tmp_path):
+    data = _as_navigation_dataset(blob_dataset, tmp_path)
+    with pytest.raises(ValueError, match=r"names task 'navigation', but the features .* are not"):
+        train_il(_cfg(data, tmp_path / "run", steps=10))
+    assert not (tmp_path / "run").exists()
+
+
+def test_eval_refuses_an_il_run_of_another_task_before_building_an_env(
+    blob_dataset, tmp_path, monkeypatch
+):
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+    from sonogym.envs import registry
+    from sonogym.evaluation.trained import load_run
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    train_il(_cfg(blob_dataset, run, steps=10))
+    cfg = json.loads((run / "config.json").read_text())
+    atomic_write_json(run / "config.json", {**cfg, "task": "navigation"})  # a run trained
+    # before il-train checked the task, or an edited config: it failed in the first step
+    with pytest.raises(ValueError, match="config.json names task 'navigation'"):
+        load_run(run)
+
+    def no_env(*a, **k):
+        raise AssertionError("an env was built")
+
+    monkeypatch.setattr(registry, "make_vec", no_env)
+    res = CliRunner().invoke(app, ["eval", "--run", str(run), "--trials", "1"])
+    assert res.exit_code != 0 and "names task 'navigation'" in res.output
+    for change, message in (
+        ({"algo": "ppo"}, "algo 'ppo' (act or dp)"),
+        ({"seed": "x"}, "seed 'x' (an integer)"),
+        ({"env_kwargs": {"w1": "high"}}, "NavigationConfig.w1 must be a finite number"),
+        ({"task": "bogus"}, "unknown task 'bogus'"),
+    ):
+        atomic_write_json(run / "config.json", {**cfg, "task": "navigation", **change})
+        with pytest.raises(ValueError, match=re.escape(message)):
+            load_run(run)

@@ -152,6 +152,27 @@ def train(
     return run_training(cfg, out, resume=resume, force=force, progress=progress, log=log)
 
 
+#: RSS growth of training per env and per byte of its rollout observations (rollouts x obs
+#: floats x 4), beyond the env's own: 64-step cpu-preset runs at 1 mm measured 1.9 (navigation,
+#: 4 -> 128 envs), 2.6 (reconstruction, 4 -> 32 envs, at the update's peak) and 3.7 (surgery,
+#: likewise): skrl's memory, the minibatches sampled from it and the update's activations.
+TRAINING_MEMORY_FACTOR = 4.0
+
+
+def check_training_memory(cfg: TrainConfig, obs_floats: int) -> None:
+    """Refuse a run whose rollout memory and update would not fit the device's free memory
+    (the env is built by now: what it holds is no longer free)."""
+    from sonogym.memory import check_fits, free_memory
+
+    r, n = cfg.params.rollouts, cfg.rl.num_envs
+    check_fits(
+        TRAINING_MEMORY_FACTOR * r * n * obs_floats * 4, free_memory(cfg.device),
+        f"{cfg.algo} training of {n} envs ({r} rollout steps of {obs_floats} observation "
+        "floats each)", "memory",
+        "use fewer envs (--envs), a larger --obs-downsample, or fewer rollouts",
+    )  # fmt: skip
+
+
 def load_train_config(out: str | Path) -> TrainConfig:
     """The ``TrainConfig`` a run folder was trained with (its ``config.json``)."""
     d = read_json(Path(out) / "config.json", "`sonogym train` run folder", ("task", "algo"))
@@ -224,6 +245,7 @@ def _run_training(
         stagger_episodes=cfg.rl.stagger_episodes,
     )  # fmt: skip
     adapter.update_stats = statistics_update(cfg.rl, start)
+    check_training_memory(cfg, adapter.observation_space.shape[0])  # before skrl allocates
     models = _models(cfg, adapter)
     ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(

@@ -51,7 +51,8 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -61,6 +62,7 @@ from sonogym.envs.spec import (
     DatasetPreset,
     DatasetSpec,
     Demo,
+    EnvMemory,
     Feature,
     Metric,
     PPOParams,
@@ -103,6 +105,7 @@ class NavigationConfig:
     w1: float = 0.045  # reward per mm of position progress (paper)
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         object.__setattr__(
             self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
         )
@@ -157,6 +160,7 @@ class NavigationEnv(TorchVectorEnv):
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         cfg = make_config(NavigationConfig, kwargs)
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         # navigation reads the volumes only through the slicer: patients load one at a time
         self.scene = ProbeScene.from_config(
@@ -299,11 +303,12 @@ SPEC = TaskSpec(
     expert=expert,
     expert_label="expert",
     metrics=(
-        Metric("position_error_mm", "position error", "mm"),
+        Metric("position_error_mm", "position error", "mm", tolerance=10.0),
         Metric("angle_error_deg", "rotation error", "deg"),
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
     demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
+    memory=EnvMemory(per_env=0.88e6, per_patient=39e6, load_peak=125e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

@@ -116,7 +116,8 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.spec import (
     CONV3,
@@ -125,6 +126,7 @@ from sonogym.envs.spec import (
     DatasetPreset,
     DatasetSpec,
     Demo,
+    EnvMemory,
     Feature,
     Metric,
     PPOParams,
@@ -197,6 +199,7 @@ class SurgeryConfig:
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         object.__setattr__(
             self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
         )
@@ -408,6 +411,7 @@ class SurgeryEnv(TorchVectorEnv):
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         cfg = make_config(SurgeryConfig, kwargs)
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         self.scene = SurgeryScene(
             cfg.patients,
@@ -657,6 +661,7 @@ SPEC = TaskSpec(
     demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
     # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
+    memory=EnvMemory(per_env=0.81e6, per_patient=127e6, load_peak=136e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),
         ppo=PPOParams(

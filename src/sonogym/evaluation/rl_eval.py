@@ -26,6 +26,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, run_policy
@@ -115,6 +116,7 @@ def evaluate_run(
         }
         for c, ep in episodes.items()
     }
+    spread = {c: distribution(trained.task, ep["metrics"]) for c, ep in episodes.items()}
     track = get_task(trained.task).track
     meta = {
         "task": trained.task,
@@ -150,10 +152,30 @@ def evaluate_run(
         **({"safety_filter": filt} if filt else {}),
         "env_overrides": to_jsonable(overrides),
         "results": results,
+        "distribution": spread,
     }
     atomic_write_text(dest / f"{stem}.json", json.dumps(table, indent=1))
-    atomic_write_text(dest / f"{stem}.md", format_table(results))
+    atomic_write_text(dest / f"{stem}.md", format_table(results, spread))
     return results
+
+
+def distribution(task: str, metrics: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """Per metric over episodes: the median and, for a metric with a ``tolerance``, the
+    fraction of episodes within it (``within``)."""
+    from sonogym.envs.registry import get_task
+
+    tol = {m.key: m for m in get_task(task).metrics if m.tolerance is not None}
+    out = {}
+    for k, v in metrics.items():
+        v = np.asarray(v, dtype=np.float64)
+        d = {"median": float(np.median(v))}
+        if k in tol:
+            m = tol[k]
+            ok = v <= m.tolerance if m.better == "lower" else v >= m.tolerance
+            d["within"] = float(ok.mean())
+            d["tolerance"] = m.tolerance
+        out[k] = d
+    return out
 
 
 def check_writable(folder: Path, name: str) -> Path:
@@ -272,11 +294,27 @@ def run_controllers(
     return out
 
 
-def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
-    """Markdown table: one row per controller, mean ± std per metric."""
+def format_table(
+    results: dict[str, dict[str, tuple[float, float]]],
+    spread: dict[str, dict[str, dict[str, float]]] | None = None,
+) -> str:
+    """Markdown table: one row per controller, mean ± std per metric; with ``spread``
+    (``distribution``) also the median and the share of episodes within a metric's tolerance."""
     metrics = sorted({k for r in results.values() for k in r})
     lines = ["| controller | " + " | ".join(metrics) + " |", "|---" * (len(metrics) + 1) + "|"]
     for name, r in results.items():
-        cells = [f"{r[k][0]:.3f} ± {r[k][1]:.3f}" if k in r else "-" for k in metrics]
+        cells = []
+        for k in metrics:
+            if k not in r:
+                cells.append("-")
+                continue
+            cell = f"{r[k][0]:.3f} ± {r[k][1]:.3f}"
+            d = (spread or {}).get(name, {}).get(k)
+            if d is not None:
+                cell += f" (median {d['median']:.3f}"
+                if "within" in d:
+                    cell += f"; {100 * d['within']:.0f} % within {d['tolerance']:g}"
+                cell += ")"
+            cells.append(cell)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

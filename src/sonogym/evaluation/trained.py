@@ -47,15 +47,43 @@ def load_run(run: str | Path) -> TrainedRun:
                 "evaluate it with load_il_policy and your own env"
             )
         check_task_name(cfg["task"], run / "config.json")  # it names files (eval, plots)
-        env = cfg.get("env_kwargs", {})
-        return TrainedRun(run, "il", cfg["task"], cfg["algo"], int(cfg.get("seed", 0)),
-                          lists_to_tuples(env), cfg)  # fmt: skip
+        env = lists_to_tuples(cfg.get("env_kwargs", {}))
+        _check_il_config(run / "config.json", cfg, env)
+        return TrainedRun(run, "il", cfg["task"], cfg["algo"], int(cfg.get("seed", 0)), env,
+                          cfg)  # fmt: skip
     from sonogym.agents.checkpoint import run_config
 
     cfg = run_config(run)  # checks the RL keys
     env = cfg["task_config"]["env_kwargs"]
     return TrainedRun(run, "rl", cfg["task"], cfg["algo"], int(cfg["seed"]),
                       lists_to_tuples(env), cfg)  # fmt: skip
+
+
+def _check_il_config(path: Path, cfg: dict[str, Any], env: Any) -> None:
+    """An IL run's config.json as evaluation reads it, checked before any env is built: its
+    task (known, and the one whose features the policy was trained on), algorithm, seed and
+    env options; a hand-edited or foreign one is named."""
+    from sonogym.envs.registry import env_config
+    from sonogym.imitation.processor import PolicyFeatures
+    from sonogym.imitation.record import check_task_features
+    from sonogym.imitation.run import read_run_config
+
+    fix = "restore the config.json the run wrote, or retrain the run"
+    read_run_config(path.parent)  # its kind and keys
+    seed = cfg.get("seed", 0)
+    if cfg.get("algo") not in ("act", "dp") or isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(
+            f"{path}: algo {cfg.get('algo')!r} (act or dp) or seed {seed!r} (an integer) is not "
+            f"an IL run's; {fix}"
+        )
+    try:
+        if not isinstance(env, dict):
+            raise ValueError(f"env_kwargs must be an object, got {env!r}")
+        env_config(cfg["task"], env)
+        features = PolicyFeatures.from_dict(cfg["features"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: {e}; {fix}") from None
+    check_task_features(cfg["task"], features, str(path))
 
 
 def newest_checkpoint(run: TrainedRun, warn=None) -> Path:

@@ -161,22 +161,52 @@ def _resume_conflicts(old: dict, new: dict) -> list[str]:
 def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     """Train (or resume) an IL policy; see the module doc. Returns the run folder and totals.
     The run folder is locked while it trains (``sonogym.runs.prepare_output``)."""
+    pcfg = cfg.resolved_policy_config()
+    # the dataset is read and checked (its statistics, the recorded task's features, every
+    # numeric value) before the run folder is touched
     data = Path(cfg.data).resolve()
-    info = read_info(data)  # the dataset is checked before the run folder is touched
+    info = read_info(data)
     stats = load_stats(data)
+    features = PolicyFeatures.from_info(info["features"])
+    recording = _recording(data)
+    if recording.get("task"):
+        from sonogym.imitation.record import check_task_features
+
+        check_task_features(recording["task"], features, f"{data} (meta/sonogym.json)")
+    ds = LeRobotFrames(
+        data,
+        delta_indices=pcfg.delta_indices(features),
+        episodes=None if cfg.episodes is None else list(cfg.episodes),
+        drop_n_last_frames=pcfg.drop_n_last_frames,
+        image_cache=cfg.image_cache,
+    )
+    if len(ds) == 0:
+        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
     with prepare_output(cfg.out, cfg.resume, cfg.force, kind="il-run") as folder:
         if folder.deleted:
             print(deleted_message(cfg.out, folder.deleted))
-        return _train(cfg, data, info, stats)
+        return _train(cfg, pcfg, _Dataset(data, info, stats, features, recording, ds))
 
 
-def _train(cfg: ILTrainConfig, data: Path, info: dict, stats: dict) -> ILTrainResult:
+@dataclasses.dataclass(frozen=True)
+class _Dataset:
+    """The checked dataset a run trains on."""
+
+    root: Path
+    info: dict
+    stats: dict
+    features: PolicyFeatures
+    recording: dict
+    frames: LeRobotFrames
+
+
+def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
     from torch.utils.tensorboard import SummaryWriter
 
-    pcfg = cfg.resolved_policy_config()
+    data, info, stats = dataset.root, dataset.info, dataset.stats
+    features, recording, ds = dataset.features, dataset.recording, dataset.frames
     out = Path(cfg.out)
     old, state = _resume_state(cfg)
-    features = PolicyFeatures.from_info(info["features"])
     dev = torch.device(cfg.device)
 
     torch.manual_seed(cfg.seed)
@@ -187,7 +217,6 @@ def _train(cfg: ILTrainConfig, data: Path, info: dict, stats: dict) -> ILTrainRe
     gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     loader_gen = torch.Generator().manual_seed(cfg.seed + 2)
 
-    recording = _recording(data)
     run_cfg = {
         # what evaluation needs without the dataset: the task and the env it imaged
         "task": recording.get("task"),
@@ -233,15 +262,6 @@ def _train(cfg: ILTrainConfig, data: Path, info: dict, stats: dict) -> ILTrainRe
         start = int(state["step"])
     runio.write_run_config(out, run_cfg)
 
-    ds = LeRobotFrames(
-        data,
-        delta_indices=pcfg.delta_indices(features),
-        episodes=None if cfg.episodes is None else list(cfg.episodes),
-        drop_n_last_frames=pcfg.drop_n_last_frames,
-        image_cache=cfg.image_cache,
-    )
-    if len(ds) == 0:
-        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
     loader = torch.utils.data.DataLoader(
         ds,
         batch_size=cfg.batch_size,

@@ -489,11 +489,11 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
 
     Why: the KL of a fixed change of the Gaussian's mean grows as 1/sigma^2, so with a fixed
     threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
-    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then
-    (surgery state seeds, docs/results.md). Scaled, the threshold bounds the mean's step per
-    update in action units instead, the same at every sigma. Tried on the surgery state
-    seeds it kept the learning rate 3-8x higher and made their tilt worse, so it is off by
-    default (docs/results.md)."""
+    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then.
+    Scaled, the threshold bounds the mean's step per update in action units instead, the same
+    at every sigma. Off by default: on the surgery state task it kept the learning rate 3-8x
+    higher and made the tilt worse (the reward barely paid for the tilt; the ``cpu`` preset's
+    w5 = 50 fixed that)."""
     base = rl.params(algo).kl_threshold
     if not rl.kl_follows_sigma or rl.final_log_std is None:
         return base
@@ -509,7 +509,7 @@ def statistics_update(rl: TaskRLConfig, step: int) -> bool:
     that had learned the task collapsed at 68 k steps after its statistics had moved the
     target's standardised depth by 1.2, 0.6 and 0.25 std per 12 k steps while its KL-adaptive
     learning rate, shrinking with sigma, sat at 1e-6: the policy could no longer follow its own
-    inputs (docs/results.md)."""
+    inputs."""
     return rl.standardize_steps == 0 or step < rl.standardize_steps
 
 

@@ -11,9 +11,10 @@ to [0, 1]. ``"labels"``: the label slice, uint8 ids. ``"state"``: the privileged
 ``"us_heading"`` (not in the paper): Dict ``image``, the ultrasound image as in ``"us"``, and
 ``heading`` (2,) float32 = (cos alpha, sin alpha) of the reached probe's yaw alpha in the
 patient's frontal plane (the angle the goal's alpha_G = pi is measured in). Why: the transverse
-view is nearly mirror-symmetric (the goal image and the image at yaw 0 mirrored correlate
-0.78-0.85, docs/results.md), so an image-only policy can hardly tell the goal from the goal
-turned 180 deg; 10-12 % of a population run's episodes ended there. The heading is what a
+view is nearly mirror-symmetric (at the goal position, the goal image and the image at yaw 0
+mirrored left-right correlate 0.78-0.85 in ultrasound), so an image-only policy can hardly
+tell the goal from the goal turned 180 deg; 10-12 % of an image-only population run's
+episodes ended there, none with the heading. The heading is what a
 tracked probe tells about the patient lying on the bed; it says nothing of where the goal lies.
 
 **Actions.** (dx, dy, dalpha) in {U}, unitless; scaled by ``action_scale`` (3 mm, 3 mm, 0.1 rad)

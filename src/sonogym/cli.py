@@ -209,6 +209,10 @@ def train(
         bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
     ] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
+    checkpoint_every: Annotated[
+        int | None,
+        typer.Option(help="Env steps per env between checkpoints (default: about ten in all)."),
+    ] = None,
     protocol: Annotated[
         str | None,
         typer.Option(
@@ -227,7 +231,7 @@ def train(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
     _check_positive(("--steps", steps), ("--envs", envs), ("--obs-downsample", obs_downsample),
-                    ("--threads", threads))  # fmt: skip
+                    ("--threads", threads), ("--checkpoint-every", checkpoint_every))  # fmt: skip
     from sonogym.agents.presets import PRESETS
 
     if preset is not None and preset not in PRESETS:
@@ -261,6 +265,7 @@ def train(
         task, algo, envs=envs, steps=steps, seed=seed, out=out, patients=pats,
         simulator=simulator, obs_downsample=obs_downsample, net=net, env_kwargs=env_kwargs,
         preset=preset, threads=threads, device=device, resume=resume, force=force, log=typer.echo,
+        checkpoint_interval=checkpoint_every,
     )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 

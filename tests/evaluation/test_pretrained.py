@@ -19,10 +19,20 @@ def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "nav"
     args = ["train", "--task", "navigation", "--obs-mode", "us_heading", "--steps", "64",
             "--envs", "4", "--phantom-spacing", "2", "--env-option", "episode_length=50",
-            "--out", str(out)]  # fmt: skip
+            "--checkpoint-every", "32", "--out", str(out)]  # fmt: skip
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     return out
+
+
+def test_training_records_checkpoints_and_their_cpu_time(tiny_run):
+    from sonogym.agents.checkpoint import checkpoints
+    from sonogym.agents.train import read_times
+
+    assert sorted(t for t, _ in checkpoints(tiny_run)) == [0, 32, 64]  # --checkpoint-every 32
+    times = read_times(tiny_run / "checkpoints")
+    assert sorted(times) == [32, 64]
+    assert 0 < times[32]["cpu_s"] <= times[64]["cpu_s"] and times[64]["wall_s"] > 0
 
 
 def test_exported_weights_act_as_the_checkpoint(tiny_run, tmp_path):

@@ -37,16 +37,24 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
     env = {"patients": [0, 1, 2, 3, 4], "simulator": simulator}
     if simulator == "learned":
         env["learned_nets"] = [0, 1, 2, 3]
-    if algo in ("act", "diffusion"):  # an `sonogym il-train` run's config
-        cfg = {"kind": IL_KIND, "task": task, "algo": algo, "seed": seed, "env_kwargs": env}
+    if algo in ("act", "dp"):  # an `sonogym il-train` run's config (no checkpoint to load)
+        from sonogym.imitation.processor import PolicyFeatures
+        from sonogym.imitation.record import info_features
+
+        n_act = len(get_task(task).action_names)
+        features = PolicyFeatures.from_info(info_features(task, n_act)).to_dict()
+        cfg = {"kind": IL_KIND, "task": task, "algo": algo, "seed": seed, "env_kwargs": env,
+               "policy": {"act": "act", "dp": "diffusion"}[algo], "policy_config": {},
+               "train": {}, "features": features, "stats": {}}  # fmt: skip
     else:  # a `sonogym train` run's (the keys evaluation reads; no checkpoint to load)
+        n_act = len(get_task(task).action_names)
         cfg = {
             "task": task,
             "algo": algo,
             "seed": seed,
             "num_envs": 4,
             "obs_layout": {"keys": ["image"], "shapes": [[1, 50, 37]]},
-            "action_space": {"low": [-1.0], "high": [1.0]},
+            "action_space": {"low": [-1.0] * n_act, "high": [1.0] * n_act},
             "task_config": {"env_kwargs": env, "obs_downsample": 1, "obs_scales": {}},
         }
     (run / "config.json").write_text(json.dumps(cfg))

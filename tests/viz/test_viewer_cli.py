@@ -61,10 +61,14 @@ def test_view_a_trained_run_policy_from_the_command_line(tmp_path):
     train("navigation", "ppo", envs=2, steps=8, out=run, patients=(0,), obs_downsample=2,
           env_kwargs=dict(phantom_spacing=0.002, episode_length=5), progress=False)  # fmt: skip
     out = tmp_path / "v.rrd"
-    # the run's task and training env (2 mm phantom, 5-step episodes): one episode by default
+    # the run's task and training env (2 mm phantom, 5-step episodes): by default the episode
+    # up to its last state (4 steps), here one step more, into the next episode
     res = CliRunner().invoke(app, ["view", "--policy", str(run), "--save", str(out)])
     assert res.exit_code == 0, res.output
-    assert f"wrote {out}" in res.output and "step 0..5" in res.output
-    assert f"rerun {out}" in res.output and "episode 0: position_error_mm" in res.output
+    assert f"wrote {out}" in res.output and "step 0..4" in res.output
+    assert f"rerun {out}" in res.output and "after step 4: position_error_mm" in res.output
+    res = CliRunner().invoke(app, ["view", "--policy", str(run), "--steps", "6", "--save",
+                                   str(out)])  # fmt: skip
+    assert res.exit_code == 0 and "episode 0 ended: position_error_mm" in res.output
     res = CliRunner().invoke(app, ["view", "--policy", str(run), "--task", "surgery"])
     assert res.exit_code != 0 and "is a navigation run, not surgery" in flat(res.output)

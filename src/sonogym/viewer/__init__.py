@@ -8,7 +8,9 @@ and are imported only after that check. ``geometry`` is plain NumPy.
 
 from __future__ import annotations
 
-INSTALL_HINT = "pip install 'sonogym[viewer]' (or `make install`, which installs it)"
+INSTALL_HINT = (
+    "pip install 'sonogym[viewer]' (Python >= 3.11), or `make install`, which installs it"
+)
 
 
 def require_rerun():

@@ -47,6 +47,10 @@ class ViewRequest:
         return re.sub(r"[^A-Za-z0-9_.-]+", "_", raw)
 
 
+def _metrics_text(metrics: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.3g}" for k, v in metrics.items())
+
+
 def run_view(
     req: ViewRequest,
     save: str | Path | None = None,
@@ -79,7 +83,8 @@ def run_view(
     else:
         result = view_env(session.rec, task, choice, options, req.steps, req.seed, log)
         for k, m in enumerate(result.episodes):
-            log(f"episode {k}: " + ", ".join(f"{n} {v:.3g}" for n, v in m.items()))
+            log(f"episode {k} ended: {_metrics_text(m)}")
+        log(f"after step {result.timeline - 1}: {_metrics_text(result.last)}")
     if web:
         serve_until_interrupted(session, log)
     else:

@@ -236,21 +236,36 @@ def log_scalars(rec: rr.RecordingStream, values: dict[str, float | Sequence[floa
         rec.log(path, rr.Scalars(np.atleast_1d(np.array(v, np.float64))))
 
 
-#: m, where the 3-D view's eye starts relative to what it looks at: above the back (-y), to
-#: the patient's right (+x) and toward the feet (-z).
-EYE_OFFSET = (0.28, -0.38, -0.3)
+#: m, the 3-D view's eye distance from what it looks at.
+EYE_DISTANCE = 0.35
+
+
+def eye_offset(normal: np.ndarray) -> np.ndarray:
+    """Where the 3-D view's eye starts relative to what it looks at: along ``normal`` (the
+    axis it should face, taken from the patient's right or feet side) and above the back
+    (-y), ``EYE_DISTANCE`` away."""
+    normal = np.array(normal, np.float64)
+    if normal @ np.array([1.0, 0.0, -1.0]) < 0:
+        normal = -normal
+    d = normal / np.linalg.norm(normal) + np.array([0.0, -1.0, 0.0])
+    return EYE_DISTANCE * d / np.linalg.norm(d)
+
+
+#: The axis a drill scene is seen along: the spine's (an axial view of the drilled vertebra,
+#: between the arms on either side, with the drill's medial angle in view).
+AXIAL = np.array([0.0, 0.0, 1.0])
 
 
 def blueprint(
     image_paths: Sequence[str],
     series_paths: Sequence[str],
-    look_at=None,
+    eye: tuple[np.ndarray, np.ndarray] | None = None,
     text: str | None = None,
     scene: bool = True,
 ) -> rrb.Blueprint:
-    """The 3-D scene (``scene``) on the left, its eye ``EYE_OFFSET`` from ``look_at`` ((3,) in
-    {P}, m; None: Rerun's default); on the right the 2-D images, one plot per series and the
-    text document at ``text``."""
+    """The 3-D scene (``scene``) on the left, its eye at ``eye`` = (position, target) in {P}
+    (None: Rerun's default); on the right the 2-D images, one plot per series and the text
+    document at ``text``."""
     images = [rrb.Spatial2DView(origin=p, name=p.removeprefix("image/")) for p in image_paths]
     plots = [rrb.TimeSeriesView(origin=p, name=p.removeprefix("series/")) for p in series_paths]
     right = []
@@ -260,16 +275,18 @@ def blueprint(
         right.append(rrb.Grid(*images))
     if plots:
         right.append(rrb.Grid(*plots))
-    eye = None
-    if look_at is not None:
-        target = np.array(look_at, np.float64)
-        eye = rrb.EyeControls3D(position=target + EYE_OFFSET, look_target=target,
-                                eye_up=(0.0, -1.0, 0.0))  # fmt: skip
-    view = rrb.Spatial3DView(origin="world", name="scene", eye_controls=eye)
+    controls = None
+    if eye is not None:
+        controls = rrb.EyeControls3D(position=np.array(eye[0], np.float64),
+                                     look_target=np.array(eye[1], np.float64),
+                                     eye_up=(0.0, -1.0, 0.0))  # fmt: skip
+    view = rrb.Spatial3DView(origin="world", name="scene", eye_controls=controls)
     if not scene:
         layout = rrb.Vertical(*right)
     elif right:
         layout = rrb.Horizontal(view, rrb.Vertical(*right), column_shares=[3, 2])
     else:
         layout = view
-    return rrb.Blueprint(layout, rrb.TimePanel(timeline=TIMELINE), collapse_panels=True)
+    # the time cursor follows the newest step: live, the current state; from a file, the last
+    time = rrb.TimePanel(timeline=TIMELINE, play_state="following")
+    return rrb.Blueprint(layout, time, collapse_panels=True)

@@ -108,6 +108,7 @@ class ViewResult:
     images: list[str]
     series: list[str]
     episodes: list[dict[str, float]] = field(default_factory=list)
+    last: dict[str, float] = field(default_factory=dict)  # the metrics logged at the last step
 
 
 def view_env(
@@ -120,8 +121,8 @@ def view_env(
     log: Callable[[str], None] = print,
 ) -> ViewResult:
     """Run ``choice``'s policy in one env of ``task`` (env ``options``) for ``steps`` steps
-    (default: one episode) from ``reset(seed)``, logging env 0 to ``rec`` (see the module
-    doc)."""
+    (default: ``episode_length - 1``, one episode up to its last state) from ``reset(seed)``,
+    logging env 0 to ``rec`` (see the module doc)."""
     spec = get_task(task)
     cfg = make_config(spec.config_cls, options)
     log(f"{task}: loading patient {cfg.patients[0]} and meshing its labels")
@@ -133,7 +134,9 @@ def view_env(
         plan = patient.landmarks.trajectory(cfg.target_vertebra, cfg.side)
     del patient
     policy = make_policy(choice, task, env, seed)
-    steps = env.episode_length if steps is None else steps
+    # one episode up to its last state: the step that ends an episode resets the env, so the
+    # state after it is the next episode's start
+    steps = max(1, env.episode_length - 1) if steps is None else steps
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
 
@@ -153,8 +156,7 @@ def view_env(
     draw.log_series_names(rec, series)
     draw.set_step(rec, 0)
     scene.log_state(new_episode=True)
-    centre = env.scene.target_centres[0].cpu().numpy()
-    rec.send_blueprint(draw.blueprint(scene.image_paths, list(series), centre))
+    rec.send_blueprint(draw.blueprint(scene.image_paths, list(series), scene.eye()))
     result = ViewResult(steps + 1, scene.image_paths, list(series))
     metric_scale = {m.key: m.scale for m in spec.metrics}
     for step in rollout(env, policy, steps, reset=False, obs=obs, info=info):
@@ -173,6 +175,7 @@ def view_env(
             values["series/safe"] = float(step.next_info["safe"][0])
         draw.log_scalars(rec, values)
         scene.log_state(new_episode=ended)
+        result.last = {k: float(v) for k, v in metrics.items()}
     env.close()
     return result
 
@@ -197,6 +200,13 @@ class EnvScene:
         self.probe_path: list[np.ndarray] = []
         self.drill_path: list[np.ndarray] = []
         self._last_us: torch.Tensor | None = None
+
+    def eye(self) -> tuple[np.ndarray, np.ndarray]:
+        """The 3-D view's eye (position, target): looking at the target vertebra's centre,
+        facing the probe's image plane as it is now (a drill scene: along the spine)."""
+        target = self.scene.target_centres[0].double().cpu().numpy()
+        normal = draw.AXIAL if self.drill else self.scene.probe_rot[0, :, 1].cpu().numpy()
+        return target + draw.eye_offset(normal), target
 
     def log_state(self, new_episode: bool) -> None:
         rec, sc, ids = self.rec, self.scene, self.env0

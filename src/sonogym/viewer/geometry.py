@@ -32,18 +32,22 @@ def mask_surface(
     name: str, mask: np.ndarray, affine: np.ndarray, resolution: float
 ) -> SurfaceMesh | None:
     """Marching cubes of a boolean voxel ``mask`` on the axis-aligned grid ``affine`` (voxel
-    index -> {P}, m), sampled every ``resolution`` metres (``step_size`` of marching cubes: a
-    decimated mesh, about (extent / resolution)^2 faces); the mask is padded by one empty voxel
-    so that structures cut by the volume's border are closed. None for an empty mask."""
+    index -> {P}, m), decimated to blocks of about ``resolution`` metres: the 0.5 iso-surface
+    of the fraction of each block inside the mask (a partial-volume field, so the surface is
+    smooth where a binary one would show voxel steps). The field is padded by one empty block,
+    so structures cut by the volume's border are closed. None for an empty mask."""
     from skimage.measure import marching_cubes
 
     if not mask.any():
         return None
     spacing = np.diag(affine)[:3]
-    step = max(1, round(resolution / float(spacing.min())))
-    padded = np.pad(mask, 1).astype(np.float32)
-    verts, faces, normals, _ = marching_cubes(padded, 0.5, step_size=step)
-    verts = (verts - 1) * spacing + affine[:3, 3]
+    s = max(1, round(resolution / float(spacing.min())))
+    m = np.pad(mask, [(0, (-n) % s) for n in mask.shape])
+    x, y, z = (n // s for n in m.shape)
+    frac = m.reshape(x, s, y, s, z, s).sum(axis=(1, 3, 5), dtype=np.uint16) / np.float32(s**3)
+    verts, faces, normals, _ = marching_cubes(np.pad(frac, 1), 0.5)
+    # block i (after the pad: i + 1) is centred on voxel i * s + (s - 1) / 2
+    verts = ((verts - 1) * s + (s - 1) / 2) * spacing + affine[:3, 3]
     # its normals point out of the mask; its triangles wind clockwise seen from outside:
     # reversed, they wind counter-clockwise, the front-face convention of renderers
     return SurfaceMesh(name, verts.astype(np.float32),

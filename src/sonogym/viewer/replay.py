@@ -144,9 +144,11 @@ def view_run_episode(
             draw.log_pose(rec, "world/probe", pos[t], rot[t])
             draw.log_polyline(rec, "world/probe_path", pos[: t + 1], draw.PROBE_PATH_COLOR)
             draw.log_scalars(rec, {k: v for k, v in zip(series, track[t], strict=True)})
-    centre = sc.target_centres[0].cpu().numpy()
+    centre = sc.target_centres[0].double().cpu().numpy()
+    normal = draw.AXIAL if plan is not None else rot[0][:, 1]  # the start's image plane
+    eye = (centre + draw.eye_offset(normal), centre)
     env.close()
-    rec.send_blueprint(draw.blueprint([], list(series), centre, text="summary"))
+    rec.send_blueprint(draw.blueprint([], list(series), eye, text="summary"))
     return ViewResult(len(track), [], list(series))
 
 

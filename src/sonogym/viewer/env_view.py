@@ -74,7 +74,8 @@ def resolve_env(
     task: str | None, choice: PolicyChoice, options: dict[str, Any]
 ) -> tuple[str, dict[str, Any]]:
     """The task and env options of a view: a run's task and training env (images as simulated,
-    as evaluation shows them) under ``options``; otherwise ``task`` with ``options``."""
+    as evaluation shows them, on the CPU) under ``options``; otherwise ``task`` with
+    ``options``."""
     if choice.kind != "run":
         if task is None:
             raise ValueError("give --task (navigation, reconstruction or surgery) or a run")
@@ -85,7 +86,9 @@ def resolve_env(
     run = load_run(choice.run)
     if task is not None and task != run.task:
         raise ValueError(f"{choice.run} is a {run.task} run, not {task}: leave out --task")
-    return run.task, {**run.env_kwargs, "imaging_randomization": False, **options}
+    # on the CPU, where run_policy puts the policy
+    return run.task, {**run.env_kwargs, "imaging_randomization": False, "device": "cpu",
+                      **options}  # fmt: skip
 
 
 def make_policy(choice: PolicyChoice, task: str, env, seed: int):

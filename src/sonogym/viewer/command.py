@@ -76,8 +76,9 @@ def run_view(
     if web:
         log(f"web viewer: {session.url}")
     if req.run is not None:
-        result = view_run_episode(session.rec, req.run, req.protocol, req.episode,
-                                  req.controller, log)  # fmt: skip
+        result = view_run_episode(
+            session.rec, req.run, req.protocol, req.episode, req.controller, log
+        )
     elif req.dataset is not None:
         result = view_dataset_episode(session.rec, req.dataset, req.episode, log)
     else:
@@ -90,6 +91,8 @@ def run_view(
     else:
         session.close()
         size = session.path.stat().st_size / 2**20
-        log(f"wrote {session.path} ({size:.1f} MiB, step 0..{result.timeline - 1}); "
-            f"open it with: rerun {session.path}")  # fmt: skip
+        log(
+            f"wrote {session.path} ({size:.1f} MiB, step 0..{result.timeline - 1}); "
+            f"open it with: rerun {session.path}"
+        )
     return result

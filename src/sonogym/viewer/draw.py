@@ -44,8 +44,14 @@ CORRIDOR_COLOR = (60, 160, 255)
 POINTS_COLOR = (40, 230, 90)
 
 #: Label colours of the 2-D label images (other ids: a fixed colour per id).
-_LABEL_COLORS = {0: (0, 0, 0), 118: (240, 170, 150), 119: (240, 220, 110), 120: (150, 50, 50),
-                 121: (70, 110, 230), 122: (60, 210, 220)}  # fmt: skip
+_LABEL_COLORS = {
+    0: (0, 0, 0),
+    118: (240, 170, 150),
+    119: (240, 220, 110),
+    120: (150, 50, 50),
+    121: (70, 110, 230),
+    122: (60, 210, 220),
+}
 
 
 def set_step(rec: rr.RecordingStream, step: int) -> None:
@@ -68,7 +74,7 @@ def log_surfaces(rec: rr.RecordingStream, meshes: Sequence[SurfaceMesh]) -> None
                 triangle_indices=m.faces,
                 vertex_normals=m.normals,
                 albedo_factor=color,
-            ),  # fmt: skip
+            ),
             static=True,
         )
 
@@ -80,9 +86,7 @@ def log_pose(
     (x red, y green, z blue)."""
     rec.log(
         path,
-        rr.Transform3D(
-            translation=np.array(pos, np.float32), mat3x3=np.array(rot, np.float32)
-        ),  # fmt: skip
+        rr.Transform3D(translation=np.array(pos, np.float32), mat3x3=np.array(rot, np.float32)),
         rr.TransformAxes3D(axis_length),
         static=static,
     )
@@ -103,8 +107,9 @@ def log_image_planes(
 ) -> None:
     """The probe's image slices (E, H, W) in [0, 1] as textured quads in {U}, under
     ``world/probe`` (so they move with the probe's transform)."""
-    for path, q, img in zip(slice_paths("world/probe/image", len(quads)), quads, images,
-                            strict=True):  # fmt: skip
+    for path, q, img in zip(
+        slice_paths("world/probe/image", len(quads)), quads, images, strict=True
+    ):
         rec.log(
             path,
             rr.Mesh3D(
@@ -113,7 +118,7 @@ def log_image_planes(
                 vertex_texcoords=q.texcoords,
                 albedo_texture=_rgb(img),
                 face_rendering=rr.components.MeshFaceRendering.DoubleSided,
-            ),  # fmt: skip
+            ),
         )
 
 
@@ -135,7 +140,7 @@ def label_annotations() -> rr.AnnotationContext:
         [
             rr.AnnotationInfo(id=i, label=LABELS.get(i, "background"), color=_label_color(i))
             for i in ids
-        ]  # fmt: skip
+        ]
     )
 
 
@@ -188,7 +193,7 @@ def log_surgery_plan(
             centers=[[0.0, 0.0, -skin_distance / 2]],
             colors=[CORRIDOR_COLOR],
             fill_mode=rr.components.FillMode.MajorWireframe,
-        ),  # fmt: skip
+        ),
         static=True,
     )
     rec.log(
@@ -199,14 +204,13 @@ def log_surgery_plan(
             colors=[GOAL_COLOR],
             fill_mode=rr.components.FillMode.MajorWireframe,
         ),
-        # fmt: skip
         static=True,
     )
     rec.log(
         "world/plan",
         rr.LineStrips3D(
             [np.stack([entry, target]).astype(np.float32)], radii=0.0008, colors=[GOAL_COLOR]
-        ),  # fmt: skip
+        ),
         static=True,
     )
 
@@ -221,8 +225,11 @@ def log_image_outlines(rec: rr.RecordingStream, quads: Sequence[ImageQuad]) -> N
     """The outlines of the probe's image planes in {U} (static, under ``world/probe``): where
     the images would be when none are shown."""
     strips = [np.vstack([q.vertices, q.vertices[:1]]) for q in quads]
-    rec.log("world/probe/outline", rr.LineStrips3D(strips, radii=0.0005, colors=(200, 200, 200)),
-            static=True)  # fmt: skip
+    rec.log(
+        "world/probe/outline",
+        rr.LineStrips3D(strips, radii=0.0005, colors=(200, 200, 200)),
+        static=True,
+    )
 
 
 def log_series_names(rec: rr.RecordingStream, names: dict[str, Sequence[str]]) -> None:
@@ -277,9 +284,11 @@ def blueprint(
         right.append(rrb.Grid(*plots))
     controls = None
     if eye is not None:
-        controls = rrb.EyeControls3D(position=np.array(eye[0], np.float64),
-                                     look_target=np.array(eye[1], np.float64),
-                                     eye_up=(0.0, -1.0, 0.0))  # fmt: skip
+        controls = rrb.EyeControls3D(
+            position=np.array(eye[0], np.float64),
+            look_target=np.array(eye[1], np.float64),
+            eye_up=(0.0, -1.0, 0.0),
+        )
     view = rrb.Spatial3DView(origin="world", name="scene", eye_controls=controls)
     if not scene:
         layout = rrb.Vertical(*right)

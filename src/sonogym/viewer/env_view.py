@@ -38,8 +38,11 @@ from sonogym.viewer.geometry import (
 )
 
 #: (scene attribute of an arm, of its joints, entity name).
-ARMS = (("arm", "q", "probe_arm"), ("probe_arm", "q_probe", "probe_arm"),
-        ("drill_arm", "q_drill", "drill_arm"))  # fmt: skip
+ARMS = (
+    ("arm", "q", "probe_arm"),
+    ("probe_arm", "q_probe", "probe_arm"),
+    ("drill_arm", "q_drill", "drill_arm"),
+)
 BUILT_IN = ("expert", "random")
 
 
@@ -87,8 +90,7 @@ def resolve_env(
     if task is not None and task != run.task:
         raise ValueError(f"{choice.run} is a {run.task} run, not {task}: leave out --task")
     # on the CPU, where run_policy puts the policy
-    return run.task, {**run.env_kwargs, "imaging_randomization": False, "device": "cpu",
-                      **options}  # fmt: skip
+    return run.task, {**run.env_kwargs, "imaging_randomization": False, "device": "cpu", **options}
 
 
 def make_policy(choice: PolicyChoice, task: str, env, seed: int):
@@ -151,8 +153,9 @@ def view_env(
     rec.log("image/labels", draw.label_annotations(), static=True)
     if plan is not None:
         g_pos, g_rot = env.scene.goal_pos[0].cpu().numpy(), env.scene.goal_rot[0].cpu().numpy()
-        draw.log_surgery_plan(rec, g_pos, g_rot, plan.entry, plan.target,
-                              float(env.half_width[0]), cfg.skin_distance)  # fmt: skip
+        draw.log_surgery_plan(
+            rec, g_pos, g_rot, plan.entry, plan.target, float(env.half_width[0]), cfg.skin_distance
+        )
     obs, info = env.reset(seed=seed)
     if "safe" in info:
         series["series/safe"] = ["safe (in C_free or C_drill)"]
@@ -172,8 +175,11 @@ def view_env(
         else:
             metrics = {k: v[0] for k, v in env.current_metrics(scene.env0).items()}
         values = {"series/reward": float(step.reward[0])}
-        values |= {f"series/{k}": float(v) * s for k, s in metric_scale.items()
-                   if (v := metrics.get(k)) is not None}  # fmt: skip
+        values |= {
+            f"series/{k}": float(v) * s
+            for k, s in metric_scale.items()
+            if (v := metrics.get(k)) is not None
+        }
         if "safe" in step.next_info:
             values["series/safe"] = float(step.next_info["safe"][0])
         draw.log_scalars(rec, values)
@@ -193,8 +199,11 @@ class EnvScene:
         self.quads = image_quads(self.scene.probe_geometry)
         n = len(self.quads)
         self.image_paths = draw.slice_paths("image/us", n) + draw.slice_paths("image/labels", n)
-        self.arms = [(name, getattr(self.scene, a), q) for a, q, name in ARMS
-                     if hasattr(self.scene, a) and hasattr(self.scene, q)]  # fmt: skip
+        self.arms = [
+            (name, getattr(self.scene, a), q)
+            for a, q, name in ARMS
+            if hasattr(self.scene, a) and hasattr(self.scene, q)
+        ]
         self.goal = env if hasattr(env, "goal_rot") else None
         self.drill = hasattr(self.scene, "tip_pos")
         if self.drill:
@@ -218,8 +227,7 @@ class EnvScene:
         pos, rot = sc.probe_pos[0].cpu().numpy(), sc.probe_rot[0].cpu().numpy()
         draw.log_pose(rec, "world/probe", pos, rot)
         self.probe_path.append(pos)
-        draw.log_polyline(rec, "world/probe_path", np.array(self.probe_path),
-                          draw.PROBE_PATH_COLOR)  # fmt: skip
+        draw.log_polyline(rec, "world/probe_path", np.array(self.probe_path), draw.PROBE_PATH_COLOR)
         us = sc.observe("us", ids)[0].float().cpu()
         if self._last_us is None or not torch.equal(us, self._last_us):
             labels = sc.observe("labels", ids)[0].cpu().numpy()
@@ -230,14 +238,17 @@ class EnvScene:
             joints = arm_joint_origins(arm, getattr(sc, q))
             draw.log_arm(rec, f"world/{name}", joints, draw.ARM_COLORS.get(arm.config.model))
         if self.goal is not None:
-            draw.log_pose(rec, "world/goal", self.goal.goal_pos[0].cpu().numpy(),
-                          self.goal.goal_rot[0].cpu().numpy())  # fmt: skip
+            draw.log_pose(
+                rec,
+                "world/goal",
+                self.goal.goal_pos[0].cpu().numpy(),
+                self.goal.goal_rot[0].cpu().numpy(),
+            )
         if self.drill:
             tip, tip_rot = sc.tip_pos[0].cpu().numpy(), sc.tip_rot[0].cpu().numpy()
             draw.log_pose(rec, "world/drill", tip, tip_rot, 0.02)
             self.drill_path.append(tip)
-            draw.log_polyline(rec, "world/drill_path", np.array(self.drill_path),
-                              draw.DRILL_COLOR)  # fmt: skip
+            draw.log_polyline(rec, "world/drill_path", np.array(self.drill_path), draw.DRILL_COLOR)
         if self.volume:
             cfg = self.env.cfg
             corner = self.env.centre[0].double().cpu().numpy() - cfg.cube_half_extent

@@ -50,9 +50,12 @@ def mask_surface(
     verts = ((verts - 1) * s + (s - 1) / 2) * spacing + affine[:3, 3]
     # its normals point out of the mask; its triangles wind clockwise seen from outside:
     # reversed, they wind counter-clockwise, the front-face convention of renderers
-    return SurfaceMesh(name, verts.astype(np.float32),
-                       np.ascontiguousarray(faces[:, ::-1]).astype(np.uint32),
-                       normals.astype(np.float32))  # fmt: skip
+    return SurfaceMesh(
+        name,
+        verts.astype(np.float32),
+        np.ascontiguousarray(faces[:, ::-1]).astype(np.uint32),
+        normals.astype(np.float32),
+    )
 
 
 def patient_surfaces(labels: np.ndarray, affine: np.ndarray, target: str) -> list[SurfaceMesh]:

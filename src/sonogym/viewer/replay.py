@@ -96,8 +96,12 @@ def view_run_episode(
     cols, units = meta["track_columns"], meta["track_units"]
     si = track * np.array([_SI[u] for u in units])
     spec = get_task(task)
-    options = {**lists_to_tuples(meta.get("test_env", {})), "imaging_randomization": False,
-               "patients": (episode_patient(ep_log, episode),), "device": "cpu"}  # fmt: skip
+    options = {
+        **lists_to_tuples(meta.get("test_env", {})),
+        "imaging_randomization": False,
+        "patients": (episode_patient(ep_log, episode),),
+        "device": "cpu",
+    }
     cfg = make_config(spec.config_cls, options)
     log(f"{task}: episode {episode} of {controller} ({protocol}), patient {cfg.patients[0]}")
     patient = resolve_patients([cfg.patients[0]], cfg.phantom_spacing)[0]
@@ -113,16 +117,27 @@ def view_run_episode(
     series = {f"series/{c}": [f"{c} ({u})"] for c, u in zip(cols, units, strict=True)}
     draw.log_series_names(rec, series)
     metrics = {k: float(v[episode]) for k, v in ep_log.metrics[controller].items()}
-    rec.log("summary", rr.TextDocument(_summary(meta, controller, episode, metrics),
-                                       media_type=rr.MediaType.MARKDOWN), static=True)  # fmt: skip
+    rec.log(
+        "summary",
+        rr.TextDocument(
+            _summary(meta, controller, episode, metrics), media_type=rr.MediaType.MARKDOWN
+        ),
+        static=True,
+    )
     sc = env.scene
     quads = image_quads(sc.probe_geometry)
     if plan is not None:
         g_pos, g_rot = sc.goal_pos[0].cpu().numpy(), sc.goal_rot[0].cpu().numpy()
-        draw.log_surgery_plan(rec, g_pos, g_rot, plan.entry, plan.target,
-                              float(env.half_width[0]), cfg.skin_distance)  # fmt: skip
-        draw.log_pose(rec, "world/probe", sc.probe_pos[0].cpu().numpy(),
-                      sc.probe_rot[0].cpu().numpy(), static=True)  # fmt: skip
+        draw.log_surgery_plan(
+            rec, g_pos, g_rot, plan.entry, plan.target, float(env.half_width[0]), cfg.skin_distance
+        )
+        draw.log_pose(
+            rec,
+            "world/probe",
+            sc.probe_pos[0].cpu().numpy(),
+            sc.probe_rot[0].cpu().numpy(),
+            static=True,
+        )
         draw.log_image_outlines(rec, quads)
         points = to_frame(g_pos, g_rot, si)  # the tip in {P}
         for t, p in enumerate(points):
@@ -132,8 +147,13 @@ def view_run_episode(
             draw.log_scalars(rec, {k: v for k, v in zip(series, track[t], strict=True)})
     else:
         if hasattr(env, "goal_rot"):
-            draw.log_pose(rec, "world/goal", env.goal_pos[0].cpu().numpy(),
-                          env.goal_rot[0].cpu().numpy(), static=True)  # fmt: skip
+            draw.log_pose(
+                rec,
+                "world/goal",
+                env.goal_pos[0].cpu().numpy(),
+                env.goal_rot[0].cpu().numpy(),
+                static=True,
+            )
         draw.log_image_outlines(rec, quads)
         goal = env.goal_cmd[0].double().cpu().numpy()
         cmd = torch.as_tensor(goal[: len(cols)] + si, dtype=torch.float32)  # x, z, yaw[, tilt]
@@ -183,8 +203,10 @@ def view_dataset_episode(
     poses = [k for k in numeric if tuple(feats[k].get("names") or ()) == POSE_NAMES]
     meta_path = Path(root) / "meta" / "sonogym.json"
     about = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    log(f"dataset {root}: episode {episode}, {len(frames)} frames"
-        + (f" ({about['task']})" if "task" in about else ""))  # fmt: skip
+    log(
+        f"dataset {root}: episode {episode}, {len(frames)} frames"
+        + (f" ({about['task']})" if "task" in about else "")
+    )
     draw.log_series_names(
         rec, {p: [str(n) for n in (feats[k].get("names") or [k])] for k, p in numeric.items()}
     )
@@ -202,11 +224,12 @@ def view_dataset_episode(
             draw.log_pose(rec, f"world/{k}", v[:3].numpy(), rot, 0.01)
             paths[k].append(v[:3].numpy())
             draw.log_polyline(rec, f"world/{k}_path", np.array(paths[k]), draw.DRILL_COLOR)
-    rec.log("summary", rr.TextDocument(json.dumps(about, indent=1) if about else str(root)),
-            static=True)  # fmt: skip
+    rec.log(
+        "summary", rr.TextDocument(json.dumps(about, indent=1) if about else str(root)), static=True
+    )
     rec.send_blueprint(
         draw.blueprint(
             list(images.values()), list(numeric.values()), text="summary", scene=bool(poses)
-        )  # fmt: skip
+        )
     )
     return ViewResult(len(frames), list(images.values()), list(numeric.values()))

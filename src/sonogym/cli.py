@@ -797,6 +797,105 @@ def export(
     typer.echo(f"wrote {dest}/ (config.json, policy.safetensors, model_card.json, model_card.md)")
 
 
+@app.command()
+def view(
+    task: Annotated[
+        str | None, typer.Option(help="Step this task's env: navigation, reconstruction, surgery.")
+    ] = None,
+    policy: Annotated[
+        str, typer.Option(help="Who acts: expert, random or a run folder (train / il-train).")
+    ] = "expert",
+    pretrained: Annotated[
+        str | None, typer.Option(help="A policy that ships with sonogym acts instead.")
+    ] = None,
+    patient: Annotated[
+        str | None,
+        typer.Option(help="A TotalSegmentator subject folder (or DIR@N, a variant of it)."),
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="Phantom seed of the patient (default 0).")
+    ] = None,
+    episode_seed: Annotated[int, typer.Option(help="Seed of the env's reset (the starts).")] = 0,
+    steps: Annotated[
+        int | None, typer.Option(help="Env steps to show (default: one episode).")
+    ] = None,
+    phantom_spacing: Annotated[
+        float | None, typer.Option(help="Voxel size of phantoms, mm (default: the env's 1).")
+    ] = None,
+    env_option: Annotated[
+        list[str] | None,
+        typer.Option(help="KEY=VALUE env option, e.g. episode_length=100; repeatable."),
+    ] = None,
+    run: Annotated[
+        Path | None,
+        typer.Option(help="Replay a run's saved evaluation episode (episodes/<protocol>.npz)."),
+    ] = None,
+    protocol: Annotated[str, typer.Option(help="--run: the episode log's name.")] = "idt",
+    controller: Annotated[
+        str | None,
+        typer.Option(help="--run: policy, expert or random (default: the policy)."),
+    ] = None,
+    dataset: Annotated[
+        Path | None, typer.Option(help="Replay an episode of a recorded LeRobot dataset.")
+    ] = None,
+    episode: Annotated[int, typer.Option(help="--run / --dataset: the episode to show.")] = 0,
+    save: Annotated[
+        Path | None,
+        typer.Option(help="Write the view to this .rrd file (default runs/view/<name>.rrd)."),
+    ] = None,
+    web: Annotated[
+        bool, typer.Option(help="Serve Rerun's web viewer on localhost instead (Ctrl-C stops).")
+    ] = False,
+    port: Annotated[
+        int, typer.Option(help="--web: the viewer's port (its data stream uses the next one).")
+    ] = 9090,
+) -> None:
+    """A 3-D view of an env stepped by a policy, a run's saved episode or a dataset's episode
+    in Rerun: the patient's skin and bones, the arms, the probe with its live image, the goal,
+    the drill and its planned corridor, reconstructed bone, images and rewards over time.
+    Needs the viewer extra: pip install 'sonogym[viewer]'."""
+    from sonogym.viewer import require_rerun
+
+    try:
+        require_rerun()
+    except ImportError as e:
+        typer.echo(f"sonogym: error: {e}", err=True)
+        raise SystemExit(1) from None
+    from sonogym.viewer.command import ViewRequest, run_view
+
+    replay = run is not None or dataset is not None
+    env_flags = {"--task": task, "--pretrained": pretrained, "--patient": patient,
+                 "--seed": seed, "--steps": steps, "--phantom-spacing": phantom_spacing,
+                 "--env-option": env_option,
+                 "--policy": None if policy == "expert" else policy}  # fmt: skip
+    given = [k for k, v in env_flags.items() if v is not None]
+    if replay and given:
+        raise typer.BadParameter(f"{', '.join(given)} step an env; --run / --dataset replay "
+                                 "what was saved: leave them out")  # fmt: skip
+    if patient is not None and seed is not None:
+        raise typer.BadParameter("give --patient or --seed, not both")
+    _check_positive(("--steps", steps))
+    options: dict[str, Any] = {}
+    if not replay:
+        if task is None and pretrained is None and policy in ("expert", "random"):
+            raise typer.BadParameter("give --task, --policy RUN or --pretrained NAME")
+        if task is not None:
+            options = parse_env_options(task, env_option)
+        elif env_option:
+            raise typer.BadParameter("--env-option needs --task (the options are the task's)")
+        if patient is not None or seed is not None:
+            options["patients"] = (seed,) if seed is not None else parse_patients([patient])
+        if phantom_spacing is not None:
+            options["phantom_spacing"] = phantom_spacing * 1e-3
+    req = ViewRequest(task=task, policy=policy, pretrained=pretrained, env_options=options,
+                      steps=steps, seed=episode_seed, run=run, protocol=protocol,
+                      controller=controller, dataset=dataset, episode=episode)  # fmt: skip
+    try:
+        run_view(req, save=save, web=web, web_port=port, log=typer.echo)
+    except (FileNotFoundError, IndexError, ValueError) as e:
+        raise typer.BadParameter(str(e)) from None
+
+
 @app.command("lb-data")
 def lb_data(
     out: Annotated[Path, typer.Option(help="Folder for manifest.json + pairs/.")],

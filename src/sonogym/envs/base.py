@@ -209,6 +209,12 @@ class TorchVectorEnv(VectorEnv):
         states, which ``step``'s own info, describing the finished transition, does not hold)."""
         return self._get_info()
 
+    def current_metrics(self, env_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The task's episode metrics of the envs' current states (None: every env), as
+        ``final_info`` would report them if their episodes ended now (without ``return``)."""
+        ids = torch.arange(self.num_envs, device=self.device) if env_ids is None else env_ids
+        return self._episode_metrics(ids)
+
     def render(self) -> np.ndarray:
         """RGB frame (uint8, H x W x 3) of env 0."""
         return self._render_frame()

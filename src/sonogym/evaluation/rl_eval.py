@@ -33,6 +33,8 @@ from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, 
 from sonogym.runs import atomic_write_text, to_jsonable
 
 CONTROLLERS = ("policy", "expert", "random")
+#: Parallel envs of an evaluation unless given (at most one per trial).
+DEFAULT_ENVS = 16
 #: a ``ppo-sf`` run's policy without its safety filter (the PPO it trained: the filter acts
 #: only at test time), evaluated beside the filtered one by default
 UNFILTERED = "unfiltered"
@@ -105,6 +107,7 @@ def evaluate_run(
     dest = check_writable(Path(out) if out is not None else trained.path, name)
 
     filt = check_safety_filter(trained, safety_filter)
+    envs = min(trials, envs or DEFAULT_ENVS)
     episodes = run_controllers(
         trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint,
         safety_filter=filt,
@@ -126,6 +129,7 @@ def evaluate_run(
         "protocol": name,
         "eval_seed": seed,
         "trials": trials,
+        "num_envs": envs,  # episode k ran in env k % num_envs: on patient (k % num_envs) % P
         "controllers": list(episodes),
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
@@ -282,7 +286,7 @@ def run_controllers(
     # evaluation images as simulated: training's per-episode imaging settings stay in training
     env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device,
                   "imaging_randomization": False}  # fmt: skip
-    env = make_vec(trained.task, min(trials, envs or 16), **env_kwargs)
+    env = make_vec(trained.task, min(trials, envs or DEFAULT_ENVS), **env_kwargs)
     out = {
         name: run_episodes(
             env, controller_policy(name, env, trained, seed, device, checkpoint, safety_filter),

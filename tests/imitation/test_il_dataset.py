@@ -8,8 +8,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
+from il_datasets import FEATURES, FPS, random_episodes, set_value, write
 
-from conftest import FEATURES, FPS, random_episodes, set_value, write
 from sonogym.imitation import lerobot_format as fmt
 from sonogym.imitation.reader import LeRobotFrames, load_stats, read_episodes
 from sonogym.imitation.writer import DatasetWriter, read_tasks

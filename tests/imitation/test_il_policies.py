@@ -7,8 +7,8 @@ import math
 
 import pytest
 import torch
+from il_datasets import BLOB_FEATURES
 
-from conftest import BLOB_FEATURES
 from sonogym.envs.policy import Policy
 from sonogym.imitation.act import ACTConfig, ACTPolicy
 from sonogym.imitation.buffers import ActionQueue, ObsHistory, TemporalEnsembler

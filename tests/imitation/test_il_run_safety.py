@@ -199,7 +199,7 @@ def test_an_undecodable_frame_is_named_and_training_saves_before_it_stops(
 def test_a_corrupt_dataset_is_refused_before_the_run_folder_is_touched(blob_dataset, tmp_path):
     import shutil
 
-    from conftest import set_value
+    from il_datasets import set_value
 
     torch.set_num_threads(1)
     run = tmp_path / "run"

@@ -39,12 +39,18 @@ def random_episodes(n: int, seed: int = 0, lengths=None) -> list[dict[str, np.nd
 
 
 def set_value(root, key: str, frame: int, component: int, value: float) -> Path:
-    """Overwrite one value of a numeric feature in the dataset's one data file, as a corrupt
-    or hand-edited file holds it (the writer refuses NaN); returns the file."""
-    path = Path(root) / "data" / "chunk-000" / "file-000.parquet"
-    t = pq.read_table(path)
+    """Overwrite one value of a numeric feature at global frame index ``frame``, in the data
+    file that holds it, as a corrupt or hand-edited file holds it (the writer refuses NaN);
+    returns the file."""
+    for path in sorted((Path(root) / "data").rglob("*.parquet")):
+        t = pq.read_table(path)
+        rows = t.column("index").to_pylist()
+        if frame in rows:
+            break
+    else:
+        raise ValueError(f"{root} holds no frame {frame}")
     a = np.asarray(t.column(key).combine_chunks().flatten()).reshape(len(t), -1).copy()
-    a[frame, component] = value
+    a[rows.index(frame), component] = value
     i = t.schema.get_field_index(key)
     flat = pa.array(a.reshape(-1), pa.float32())
     col = pa.FixedSizeListArray.from_arrays(flat, a.shape[1])

@@ -261,7 +261,7 @@ def test_eval_refuses_an_il_run_of_another_task_before_building_an_env(
         ({"algo": "ppo"}, "algo 'ppo' (act or dp)"),
         ({"seed": "x"}, "seed 'x' (an integer)"),
         ({"env_kwargs": {"w1": "high"}}, "NavigationConfig.w1 must be a finite number"),
-        ({"task": "bogus"}, "unknown task 'bogus'"),
+        ({"task": "bogus"}, "task 'bogus' is not a sonogym task"),
     ):
         atomic_write_json(run / "config.json", {**cfg, "task": "navigation", **change})
         with pytest.raises(ValueError, match=re.escape(message)):

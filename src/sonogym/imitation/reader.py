@@ -257,8 +257,8 @@ class LeRobotFrames(torch.utils.data.Dataset):
         """Refuse NaN, inf and values beyond ``MAX_ABS_VALUE`` in the float columns ``cols``
         (one data file's committed rows), naming the file, episode, frame and column."""
         for k, arr in cols.items():
-            if not np.issubdtype(arr.dtype, np.floating):
-                continue
+            if not np.issubdtype(arr.dtype, np.floating) or len(arr) == 0:
+                continue  # no rows: a data file whose episode was never committed
             bad = (~np.isfinite(arr) | (np.abs(arr) > MAX_ABS_VALUE)).reshape(len(arr), -1)
             if not bad.any():
                 continue

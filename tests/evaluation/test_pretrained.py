@@ -26,9 +26,10 @@ def tiny_run(tmp_path_factory):
 
 
 def test_exported_weights_act_as_the_checkpoint(tiny_run, tmp_path):
-    from sonogym.agents.checkpoint import latest_readable_checkpoint, read_checkpoint
+    from sonogym.agents.checkpoint import RL_RUN, read_checkpoint
+    from sonogym.runs import RunFolder
 
-    ckpt = latest_readable_checkpoint(tiny_run)[0]
+    ckpt = RunFolder(tiny_run, RL_RUN).require_checkpoint().path
     dest = P.export_pretrained(tiny_run, "nav-test", root=tmp_path, notes="a test")
     assert P.available(tmp_path) == ["nav-test"]
     a, b = read_checkpoint(ckpt), read_checkpoint(dest / P.WEIGHTS)

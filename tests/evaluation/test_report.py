@@ -16,7 +16,7 @@ from sonogym.envs.registry import get_task
 from sonogym.evaluation.curves import curve_over_seeds, discover_runs, plot_curves
 from sonogym.evaluation.episodes import load_log, log_path, save_log
 from sonogym.evaluation.report import build_report, table1_columns, task_metrics
-from sonogym.evaluation.trained import IL_KIND
+from sonogym.imitation.run import RUN_KIND as IL_KIND
 
 TRIALS = 5
 T = 6

@@ -24,6 +24,9 @@ from torch import nn
 
 from sonogym.imitation.processor import ACTION_KEY, Normalizer, PolicyFeatures, norm_modes
 
+#: dataset statistics a model normalises with: {key: {"mean", "std", "min", "max": tensor}}
+Stats = dict[str, dict[str, torch.Tensor]]
+
 
 class ILConfig(abc.ABC):
     """Base of a policy config, which is a frozen dataclass with (at least) these fields:
@@ -97,12 +100,7 @@ class ILModel(nn.Module, abc.ABC):
     override ``lr_lambda`` (default: a constant rate).
     """
 
-    def __init__(
-        self,
-        config: ILConfig,
-        features: PolicyFeatures,
-        stats: dict[str, dict[str, torch.Tensor]],
-    ) -> None:
+    def __init__(self, config: ILConfig, features: PolicyFeatures, stats: Stats) -> None:
         super().__init__()
         self.config = config
         self.features = features

@@ -21,9 +21,19 @@ import torch.nn.functional as F
 from torch import nn
 
 from sonogym.imitation.policies.act.configuration import ACTConfig
-from sonogym.imitation.policies.base import ILModel
+from sonogym.imitation.policies.base import ILModel, Stats
 from sonogym.imitation.processor import ACTION_KEY, STATE_KEY, PolicyFeatures
 from sonogym.imitation.vision import ResNetEncoder, resize, sine_position_1d, sine_position_2d
+
+
+def _feed_forward(c: ACTConfig) -> nn.Sequential:
+    """A transformer block's feed-forward part: Linear, activation, dropout, Linear."""
+    return nn.Sequential(
+        nn.Linear(c.dim_model, c.dim_feedforward),
+        nn.ReLU() if c.feedforward_activation == "relu" else nn.GELU(),
+        nn.Dropout(c.dropout),
+        nn.Linear(c.dim_feedforward, c.dim_model),
+    )
 
 
 class _EncoderLayer(nn.Module):
@@ -32,12 +42,7 @@ class _EncoderLayer(nn.Module):
     def __init__(self, c: ACTConfig) -> None:
         super().__init__()
         self.attn = nn.MultiheadAttention(c.dim_model, c.n_heads, c.dropout, batch_first=True)
-        self.ff = nn.Sequential(
-            nn.Linear(c.dim_model, c.dim_feedforward),
-            nn.ReLU() if c.feedforward_activation == "relu" else nn.GELU(),
-            nn.Dropout(c.dropout),
-            nn.Linear(c.dim_feedforward, c.dim_model),
-        )
+        self.ff = _feed_forward(c)
         self.n1, self.n2 = nn.LayerNorm(c.dim_model), nn.LayerNorm(c.dim_model)
         self.d1, self.d2 = nn.Dropout(c.dropout), nn.Dropout(c.dropout)
         self.pre_norm = c.pre_norm
@@ -58,12 +63,7 @@ class _DecoderLayer(nn.Module):
         super().__init__()
         self.self_attn = nn.MultiheadAttention(c.dim_model, c.n_heads, c.dropout, batch_first=True)
         self.cross_attn = nn.MultiheadAttention(c.dim_model, c.n_heads, c.dropout, batch_first=True)
-        self.ff = nn.Sequential(
-            nn.Linear(c.dim_model, c.dim_feedforward),
-            nn.ReLU() if c.feedforward_activation == "relu" else nn.GELU(),
-            nn.Dropout(c.dropout),
-            nn.Linear(c.dim_feedforward, c.dim_model),
-        )
+        self.ff = _feed_forward(c)
         self.norms = nn.ModuleList(nn.LayerNorm(c.dim_model) for _ in range(3))
         self.drops = nn.ModuleList(nn.Dropout(c.dropout) for _ in range(3))
         self.pre_norm = c.pre_norm
@@ -84,12 +84,7 @@ class ACTPolicy(ILModel):
 
     config: ACTConfig
 
-    def __init__(
-        self,
-        config: ACTConfig,
-        features: PolicyFeatures,
-        stats: dict[str, dict[str, torch.Tensor]],
-    ) -> None:
+    def __init__(self, config: ACTConfig, features: PolicyFeatures, stats: Stats) -> None:
         super().__init__(config, features, stats)
         c = config
         d, a = c.dim_model, features.action_dim

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sonogym.imitation.policies.base import ILModel
+from sonogym.imitation.policies.base import ILModel, Stats
 from sonogym.imitation.policies.diffusion.configuration import DiffusionConfig
 from sonogym.imitation.processor import ACTION_KEY, STATE_KEY, PolicyFeatures
 from sonogym.imitation.vision import ResNetEncoder, SpatialSoftmax, crop, resize
@@ -158,12 +158,7 @@ class DiffusionPolicy(ILModel):
 
     config: DiffusionConfig
 
-    def __init__(
-        self,
-        config: DiffusionConfig,
-        features: PolicyFeatures,
-        stats: dict[str, dict[str, torch.Tensor]],
-    ) -> None:
+    def __init__(self, config: DiffusionConfig, features: PolicyFeatures, stats: Stats) -> None:
         super().__init__(config, features, stats)
         from diffusers import DDIMScheduler, DDPMScheduler
 

@@ -523,6 +523,9 @@ class RunFolder:
     path: Path
     kind: RunKind
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", Path(self.path))  # a str path is taken too
+
     def config(self) -> dict:
         """The run's config.json, checked (``RunKind.read_config``)."""
         return self.kind.read_config(self.path)

@@ -109,7 +109,7 @@ def load_policy(
 
 
 def _newest(run: Path) -> Path:
-    return RunFolder(Path(run), RL_RUN).require_checkpoint().path
+    return RunFolder(run, RL_RUN).require_checkpoint().path
 
 
 def load_module(module: torch.nn.Module, checkpoint: str | Path, key: str, device) -> None:

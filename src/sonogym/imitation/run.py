@@ -152,7 +152,7 @@ def load_model(
     }
     model = spec.model_cls(config, features, stats).to(device)
     if checkpoint is None:
-        state = RunFolder(Path(run), IL_RUN).require_checkpoint(device).state
+        state = RunFolder(run, IL_RUN).require_checkpoint(device).state
     else:
         state = load_checkpoint(checkpoint, device)
     model.load_state_dict(state["model"])

@@ -124,7 +124,7 @@ def _resume_state(cfg: ILTrainConfig):
     if not cfg.resume:
         return None, None
     old = runio.read_run_config(cfg.out)
-    found = RunFolder(Path(cfg.out), runio.IL_RUN).newest_readable_checkpoint(cfg.device)
+    found = RunFolder(cfg.out, runio.IL_RUN).newest_readable_checkpoint(cfg.device)
     return old, None if found is None else found.state
 
 

@@ -309,9 +309,16 @@ def record(
                seed=seed, resume=resume, force=force, log=typer.echo)  # fmt: skip
 
 
+def _il_policies() -> str:
+    """The registered imitation-learning policies, for il-train's help."""
+    from sonogym.imitation.policies.registry import policy_names
+
+    return " or ".join(policy_names())
+
+
 @app.command("il-train")
 def il_train(
-    policy: Annotated[str, typer.Option(help="act or diffusion.")],
+    policy: Annotated[str, typer.Option(help=f"{_il_policies()}.")],
     data: Annotated[Path, typer.Option(help="Dataset folder (sonogym record).")],
     out: Annotated[Path, typer.Option(help="Run folder (checkpoints, config.json, tb/).")],
     steps: Annotated[int | None, typer.Option(help="Optimiser steps in total.")] = None,
@@ -345,9 +352,11 @@ def il_train(
         ),
     ] = 5.0,
 ) -> None:
-    """Train ACT or Diffusion Policy on an expert dataset; evaluate with sonogym eval --run."""
+    """Train an imitation-learning policy (ACT, Diffusion Policy, ...) on an expert dataset;
+    evaluate with sonogym eval --run."""
     from sonogym.agents.presets import cpu_threads
-    from sonogym.imitation.run import config_from_dict, make_config, read_run_config
+    from sonogym.imitation.policies.registry import get_policy, make_config
+    from sonogym.imitation.run import read_run_config
     from sonogym.imitation.train import ILTrainConfig, train_il
 
     _check_positive(("--steps", steps), ("--batch-size", batch_size),
@@ -373,7 +382,7 @@ def il_train(
         overrides["image_size"] = (int(h), int(w))
     try:
         if old is not None and not (overrides or preset_given) and old["policy"] == policy:
-            policy_config = config_from_dict(policy, old["policy_config"])
+            policy_config = get_policy(policy).config_cls.from_dict(old["policy_config"])
         else:
             policy_config = make_config(policy, preset, **overrides) if overrides else None
     except ValueError as e:

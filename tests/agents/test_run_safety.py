@@ -77,10 +77,8 @@ def test_existing_run_needs_resume_or_force(run, tmp_path):
     with pytest.raises(FileExistsError, match="--resume.*--force"):
         _tiny(r)
     _tiny(r, steps=16, force=True)  # replaced: a fresh run of 16 steps
-    assert sorted(p.name for p in (r / "checkpoints").glob("agent_*.pt")) == [
-        "agent_0.pt",
-        "agent_16.pt",
-    ]
+    names = sorted(p.name for p in (r / "checkpoints").iterdir())
+    assert names == ["agent_0.pt", "agent_16.pt", "times.json"]
     with pytest.raises(FileNotFoundError, match="nothing to resume"):
         _tiny(tmp_path / "new", resume=True)
 

@@ -9,22 +9,26 @@ import re
 import pytest
 import torch
 
-from sonogym.imitation.act import ACTConfig
-from sonogym.imitation.run import (
-    checkpoints,
-    load_checkpoint,
-    load_model,
-    newest_readable_checkpoint,
-    read_run_config,
-)
+from sonogym.imitation.policies.act import ACTConfig
+from sonogym.imitation.run import IL_RUN, load_checkpoint, load_model, read_run_config
 from sonogym.imitation.train import ILTrainConfig, train_il
-from sonogym.runs import CheckpointError, TrainingInterrupted, atomic_write_json, read_json
+from sonogym.runs import (
+    CheckpointError,
+    RunFolder,
+    TrainingInterrupted,
+    atomic_write_json,
+    read_json,
+)
 
 TINY_ACT = ACTConfig.cpu(
     chunk_size=4, n_action_steps=4, backbone_widths=(8, 16), backbone_blocks=(1, 1),
     dim_model=32, n_heads=2, dim_feedforward=64, n_encoder_layers=1, n_vae_encoder_layers=1,
     latent_dim=4, dropout=0.0,
 )  # fmt: skip
+
+
+def checkpoints(run):
+    return RunFolder(run, IL_RUN).checkpoints()
 
 
 def _cfg(data, out, **kw):
@@ -42,7 +46,8 @@ def test_torn_newest_checkpoint_is_skipped_by_name(blob_dataset, tmp_path):
     with pytest.raises(CheckpointError, match="step_000000030.pt is not a readable"):
         load_checkpoint(torn)
     warned = []
-    path, state = newest_readable_checkpoint(run, warn=warned.append)
+    found = RunFolder(run, IL_RUN).newest_readable_checkpoint(warn=warned.append)
+    path, state = found.path, found.state
     assert path.name == "step_000000020.pt" and state["step"] == 20
     assert len(warned) == 1 and "step_000000030.pt" in warned[0]
     with pytest.warns(UserWarning, match="step_000000030.pt"):
@@ -78,7 +83,7 @@ def test_resume_refuses_changed_options_by_name(blob_dataset, tmp_path):
 
 def test_ctrl_c_saves_and_says_how_to_resume(blob_dataset, tmp_path, monkeypatch, capsys):
     torch.set_num_threads(1)
-    from sonogym.imitation import act
+    from sonogym.imitation.policies.act import modeling as act
 
     calls = {"n": 0}
     real = act.ACTPolicy.compute_loss

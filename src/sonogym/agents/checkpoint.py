@@ -1,11 +1,10 @@
-"""Checkpoints of a run directory written by ``sonogym.agents.train``: find them, load the
-trained networks, and act with them in an env as a ``Policy`` (``rl_policy``)."""
+"""Checkpoints of a run directory written by ``sonogym.agents.train``: find them (``RL_RUN``,
+the RL kind of ``sonogym.runs.RunFolder``), load the trained networks, and act with them in an
+env as a ``Policy`` (``rl_policy``)."""
 
 from __future__ import annotations
 
 import math
-import re
-import warnings
 from pathlib import Path
 
 import gymnasium as gym
@@ -15,10 +14,14 @@ import torch
 from sonogym.agents.adapter import ObsLayout, SkrlEnvAdapter
 from sonogym.agents.networks import SharedActorCritic, log_std_ceiling, make_models, net_size
 from sonogym.envs.policy import StatelessPolicy
-from sonogym.runs import CheckpointError, atomic_write_bytes, lists_to_tuples, load_weights
-
-_CKPT = re.compile(r"agent_(\d+)\.pt$")
-
+from sonogym.runs import (
+    CheckpointError,
+    RunFolder,
+    RunKind,
+    atomic_write_bytes,
+    lists_to_tuples,
+    load_weights,
+)
 
 #: The modules an exported checkpoint keeps: what acting needs (no optimiser, no value).
 ACTING_MODULES = ("policy", "obs_standardizer", "cost_critic")
@@ -73,41 +76,6 @@ def export_acting_weights(checkpoint: str | Path, dest: str | Path) -> Path:
     return atomic_write_bytes(dest, save(flat))
 
 
-def checkpoints(out: str | Path) -> list[tuple[int, Path]]:
-    """(env steps, path) of every ``agent_<t>.pt`` in ``out/checkpoints``, newest first."""
-    found = []
-    for p in (Path(out) / "checkpoints").glob("agent_*.pt"):
-        m = _CKPT.search(p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    return sorted(found, reverse=True)
-
-
-def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
-    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
-    found = checkpoints(out)
-    return (found[0][1], found[0][0]) if found else None
-
-
-def latest_readable_checkpoint(out: str | Path, warn=None) -> tuple[Path, int] | None:
-    """(path, env steps) of the newest checkpoint that reads (``read_checkpoint``), or None;
-    each unreadable newer one (a save killed half-way by an older version, a corrupt file) is
-    skipped with a warning naming it (``warn``: a callable taking the message; default
-    ``warnings.warn``)."""
-    for t, p in checkpoints(out):
-        try:
-            read_checkpoint(p)
-        except (CheckpointError, OSError) as e:
-            msg = f"skipping unreadable checkpoint: {e}"
-            if warn is None:
-                warnings.warn(msg, stacklevel=2)
-            else:
-                warn(msg)
-            continue
-        return p, t
-    return None
-
-
 def load_policy(
     run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"
 ) -> tuple[SharedActorCritic, dict]:
@@ -135,16 +103,13 @@ def load_policy(
         "policy"
     ]
     load_module(model, checkpoint, "policy", device)
-    set_log_std_ceiling(model, cfg["task_config"], checkpoint_step(checkpoint))
+    set_log_std_ceiling(model, cfg["task_config"], RL_RUN.step_of(checkpoint))
     model.eval()
     return model, cfg
 
 
 def _newest(run: Path) -> Path:
-    found = latest_readable_checkpoint(run)
-    if found is None:
-        raise FileNotFoundError(f"no readable checkpoints/agent_<t>.pt in {run}")
-    return found[0]
+    return RunFolder(run, RL_RUN).require_checkpoint().path
 
 
 def load_module(module: torch.nn.Module, checkpoint: str | Path, key: str, device) -> None:
@@ -165,12 +130,6 @@ def load_module(module: torch.nn.Module, checkpoint: str | Path, key: str, devic
             f"{checkpoint}: its {key!r} does not fit the network the run's config.json "
             f"describes ({detail}); config.json was edited or is another run's; restore it"
         ) from None
-
-
-def checkpoint_step(path: str | Path) -> int | None:
-    """The env step per env of ``agent_<t>.pt`` (None for another name)."""
-    m = _CKPT.search(Path(path).name)
-    return int(m.group(1)) if m else None
 
 
 def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int | None) -> None:
@@ -359,3 +318,17 @@ def rl_policy(
         critic, threshold, mode = load_cost_critic(run, checkpoint, device)
         return RLPolicy(model, adapter, critic, threshold, mode)
     return RLPolicy(model, adapter)
+
+
+#: How ``sonogym.runs.RunFolder`` reads an RL run: checkpoints ``agent_<t>.pt`` (t: env steps
+#: per env), config.json without a "kind".
+RL_RUN = RunKind(
+    name="rl",
+    command="sonogym train",
+    marker=None,
+    checkpoint_name=r"agent_(\d+)\.pt",
+    checkpoint_hint="agent_<t>.pt",
+    read_checkpoint=read_checkpoint,
+    read_config=run_config,
+    env_kwargs_key=("task_config", "env_kwargs"),
+)

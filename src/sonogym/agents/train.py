@@ -32,6 +32,7 @@ and says how to resume.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -44,8 +45,8 @@ import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
 from sonogym.agents.checkpoint import (
+    RL_RUN,
     check_obs_version,
-    latest_readable_checkpoint,
     read_checkpoint,
     set_log_std_ceiling,
 )
@@ -62,6 +63,7 @@ from sonogym.agents.networks import log_std_ceiling, make_models
 from sonogym.envs.registry import check_task_name, get_task, make_vec
 from sonogym.progress import progress_bar
 from sonogym.runs import (
+    RunFolder,
     TrainingInterrupted,
     atomic_torch_save,
     atomic_write_json,
@@ -224,15 +226,16 @@ def _run_training(
 
     start_ckpt = None
     if resume:
-        start_ckpt = latest_readable_checkpoint(out, warn=log)
+        start_ckpt = RunFolder(out, RL_RUN).newest_readable_checkpoint(warn=log)
         if start_ckpt is None:
             raise FileNotFoundError(f"nothing to resume: no readable checkpoint in {out}")
-        if start_ckpt[1] >= cfg.steps:
+        if start_ckpt.step >= cfg.steps:
             raise ValueError(
-                f"{out} already has {start_ckpt[1]} steps >= the requested {cfg.steps}; "
+                f"{out} already has {start_ckpt.step} steps >= the requested {cfg.steps}; "
                 "pass a larger --steps to train further"
             )
-    start = start_ckpt[1] if start_ckpt else 0
+        start_ckpt = dataclasses.replace(start_ckpt, state=None)  # the agent reads it below
+    start = start_ckpt.step if start_ckpt else 0
     threads_before = torch.get_num_threads()
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
@@ -258,7 +261,7 @@ def _run_training(
     agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
     ckpt_dir = out / "checkpoints"
     if start_ckpt is not None:
-        load_agent(agent, start_ckpt[0])
+        load_agent(agent, start_ckpt.path)
     resolved = {
         **cfg.to_dict(),
         "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},

@@ -5,6 +5,7 @@ like a run, writing the same files to --out."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -52,6 +53,22 @@ def test_exported_weights_act_as_the_checkpoint(tiny_run, tmp_path):
     assert card["task"] == "navigation" and card["steps_per_env"] == 64
     assert card["steps_total"] == 64 * 4 and card["cpu_minutes"] is not None
     assert "a test" in (dest / "model_card.md").read_text()
+
+
+def test_the_card_lists_only_evaluations_of_the_exported_checkpoint(tiny_run, tmp_path):
+    rows = {"policy": {"position_error_mm": [3.0, 1.0]}}
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    for stem, ckpt in (("eval", "agent_64.pt"), ("eval-old", "agent_32.pt")):
+        table = {"protocol": stem, "trials": 4, "checkpoint": ckpt, "results": rows}
+        (run / f"{stem}.json").write_text(json.dumps(table))
+    P.export_pretrained(run, "nav-test", root=tmp_path / "shipped")
+    card = P.read_card("nav-test", tmp_path / "shipped")
+    assert list(card["evaluations"]) == ["eval"] and card["checkpoint"] == "agent_64.pt"
+    P.export_pretrained(
+        run, "nav-old", root=tmp_path / "shipped", checkpoint=run / "checkpoints" / "agent_32.pt"
+    )
+    assert list(P.read_card("nav-old", tmp_path / "shipped")["evaluations"]) == ["eval-old"]
 
 
 def test_eval_pretrained_writes_a_runs_table_to_out(tiny_run, tmp_path, monkeypatch):

@@ -86,7 +86,7 @@ def export_pretrained(
     """Write run ``run``'s policy as shipped policy ``name`` under ``root``: its config, the
     acting weights of ``checkpoint`` (default: the newest readable) and a model card from the
     run's config, its ``checkpoints/times.json`` and the evaluations in its folder
-    (``eval*.json``). Replaces an earlier export of the same name."""
+    (``eval*.json`` of that checkpoint). Replaces an earlier export of the same name."""
     import re
 
     from sonogym.agents.checkpoint import RL_RUN, export_acting_weights, run_config
@@ -121,6 +121,8 @@ def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[st
     evals = {}
     for f in sorted(run.glob("eval*.json")):
         table = json.loads(f.read_text())
+        if table.get("checkpoint") not in (None, checkpoint.name):
+            continue  # an evaluation of another checkpoint says nothing of this one
         results = table.get("results", {})
         evals[table.get("protocol", f.stem)] = {
             "trials": table.get("trials"),

@@ -1,6 +1,8 @@
 """simulator="learned" in the envs: nets drawn per env at resets as configured, images of the
 declared spaces, interchangeable with the model-based simulator behind one interface."""
 
+from dataclasses import replace
+
 import gymnasium as gym
 import pytest
 import torch
@@ -28,7 +30,7 @@ def test_nets_switch_at_resets_as_configured():
     sim = env.scene.simulator
     s = env.scene.slices()
     for k in (0, 1):
-        alone = sim.simulate(s, nets=torch.full((4,), k))
+        alone = sim.simulate(replace(s, net_index=torch.full((4,), k)))
         rows = env.scene.nets.index == k
         assert torch.allclose(obs[rows], alone[rows], atol=1e-5)
     # a partial reset redraws only the reset envs' nets
@@ -127,6 +129,6 @@ def test_surgery_volume_slice_by_slice():
     # each elevation slice is the 2-D net applied to that slice alone
     for e in (0, 4):
         one = type(s)(s.ct[:, e : e + 1], s.labels[:, e : e + 1], s.origin[:, e : e + 1],
-                      s.row_step, s.col_step, s.seed, s.patient_index, s.probe)  # fmt: skip
-        assert torch.allclose(sc.simulator.simulate(one, nets=torch.zeros(1)), obs[:, e : e + 1],
-                              atol=1e-5)  # fmt: skip
+                      s.row_step, s.col_step, s.seed, s.patient_index, s.probe,
+                      torch.zeros(1, dtype=torch.long))  # fmt: skip
+        assert torch.allclose(sc.simulator.simulate(one), obs[:, e : e + 1], atol=1e-5)

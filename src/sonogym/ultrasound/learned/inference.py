@@ -16,15 +16,17 @@ What it changes against calling the module, and why (measurements: benchmarks/RE
   image at a time, because it splits a call's pixels over the torch threads and a split that
   spans images would make an image depend on the others in its batch. On smaller maps (where
   that kernel walks memory with a stride of C) the per-channel means of x and x^2 come from
-  float32 pooling, then one fused multiply-add. Statistics are float32 in both precisions;
+  float32 pooling, then one fused multiply-add. On other devices one batched group norm
+  (its reductions are per image and channel). Statistics are float32 in both precisions;
 * LeakyReLU and the residual sums run in place.
 
 The layers, their order and their arithmetic are the module's: in float32 images match the
 module's to ~1e-6 (summation order), in bfloat16 to ~5e-4 on average (tests; the model card's
-held-out figures are unchanged to 3 decimals, docs/learned.md). Every image is computed
-independently of the others in its batch, bit for bit. The group norm's statistics depend on
-the number of torch threads in their last bits, as oneDNN's float32 convolutions do: the same
-seed and thread count give the same images.
+held-out figures are unchanged to 3 decimals, docs/learned.md). In bfloat16 an image does not
+depend on the others in its batch, bit for bit; in float32 to ~1e-6 (oneDNN picks its
+convolution kernels by batch size, for the module too). The group norm's statistics, like
+oneDNN's float32 convolutions, depend on the number of torch threads in their last bits: the
+same seed and thread count give the same images.
 """
 
 from __future__ import annotations
@@ -71,8 +73,10 @@ class _NormAct:
 
     def __call__(self, y: torch.Tensor) -> torch.Tensor:
         b, c, h, w = y.shape
-        if h * w >= GROUP_NORM_MIN_PIXELS:
-            # one image per call: the group norm splits a call's pixels over the torch
+        if y.device.type != "cpu":  # a reduction per image and channel: batch independent
+            y = F.group_norm(y, c, self.weight, self.bias, self.eps)
+        elif h * w >= GROUP_NORM_MIN_PIXELS:
+            # one image per call: ATen's CPU group norm splits a call's pixels over the torch
             # threads, and a split across images would make an image depend on the batch
             y = torch.cat(
                 [F.group_norm(y[i : i + 1], c, self.weight, self.bias, self.eps) for i in range(b)]

@@ -72,7 +72,7 @@ class LearnedSimulator:
         precision: "float32" (default) or "bfloat16": the generator's working precision
             (weights and activations; normalisation statistics stay float32). bfloat16 is
             ~2x faster on CPUs with native bfloat16 (AVX-512 BF16, AMX) and changes images by
-            ~1e-3 on average (docs/learned.md); on CPUs without it, it is emulated and slow.
+            ~5e-4 on average (docs/learned.md); on CPUs without it, it is emulated and slow.
         reference: run the ``UNet`` modules in float32 (the slow reference path the default
             one is tested against) instead of their inference form; needs
             ``precision="float32"``.

@@ -1,4 +1,4 @@
-"""Env-steps per second and resident memory against patients x envs (issue: many patients).
+"""Env-steps per second and resident memory against patients x envs (many patients).
 
     python benchmarks/population.py [--task navigation] [--patients 1 8 32 64]
         [--envs 32 128 512] [--steps 20] [--phantom-spacing 0.001] [--threads 1]

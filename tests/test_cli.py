@@ -60,3 +60,14 @@ def test_train_force_never_deletes_a_folder_holding_a_config_json_of_the_users(t
     assert res.exit_code != 0
     assert "no .sonogym marker" in str(res.exception)
     assert _tree(project) == before
+
+
+def test_a_symlink_loop_given_as_a_patient_is_named_not_a_traceback(tmp_path):
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    out = tmp_path / "demo"
+    res = CliRunner().invoke(app, ["demo", "--patient", str(tmp_path / "a"), "--out", str(out)])
+    # a ValueError is what main() prints as one "sonogym: error:" line
+    assert isinstance(res.exception, ValueError), res.exception
+    msg = str(res.exception)
+    assert f"patient folder {tmp_path / 'a'}" in msg and "symlink" in msg

@@ -11,6 +11,12 @@ deletes only a folder carrying that marker and holding nothing but what the comm
 Files that matter (checkpoints, ``config.json``, caches, datasets, reports) are written to a
 temporary file in the same folder and renamed over the target, so a killed process leaves
 either the old file or the new one, never a torn one.
+
+A training run's folder, RL (``sonogym train``) or IL (``sonogym il-train``), is read through
+one ``RunFolder``: its config, its checkpoints (oldest first), the newest one that reads. What
+differs between the two (checkpoint names, the checkpoint and config readers, how config.json
+marks the kind) is a ``RunKind``, defined beside each trainer (``agents.checkpoint.RL_RUN``,
+``imitation.run.IL_RUN``); this module imports neither.
 """
 
 from __future__ import annotations
@@ -20,7 +26,8 @@ import json
 import os
 import re
 import shutil
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -469,3 +476,105 @@ def lists_to_tuples(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: lists_to_tuples(v) for k, v in x.items()}
     return x
+
+
+# ----------------------------------------------------------------------------- run folders
+
+
+@dataclass(frozen=True)
+class RunKind:
+    """What sets one kind of training run's folder apart (see the module doc)."""
+
+    name: str  # "rl" | "il"
+    command: str  # the command that writes such runs, for messages
+    marker: str | None  # config.json's "kind" for such runs; None: a config.json without one
+    checkpoint_name: str  # regex of a checkpoint's file name in checkpoints/; group 1: step
+    checkpoint_hint: str  # the file names as messages show them, e.g. "agent_<t>.pt"
+    read_checkpoint: Callable[[Path, Any], Any]  # (path, device) -> state; an unreadable
+    # file raises CheckpointError (or OSError), a missing one FileNotFoundError
+    read_config: Callable[[Path], dict]  # run folder -> config.json, checked as evaluation
+    # needs it (a clear error naming the file otherwise)
+    env_kwargs_key: tuple[str, ...]  # where config.json holds the training env's options
+
+    def step_of(self, path: str | Path) -> int | None:
+        """The step in a checkpoint's file name, read from the name's end (a renamed copy
+        with a prefix keeps it); None for a name of another pattern."""
+        m = re.search(f"{self.checkpoint_name}$", Path(path).name)
+        return int(m.group(1)) if m else None
+
+    def env_kwargs(self, config: dict) -> dict:
+        """The env options a run of this kind was trained on ({} where none are recorded)."""
+        for key in self.env_kwargs_key:
+            config = config.get(key, {})
+        return config
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    step: int  # from the file name: env steps per env (RL) or optimiser steps (IL)
+    path: Path
+    state: Any  # what the kind's reader returned
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """A training run's folder as the kind ``kind`` lays it out."""
+
+    path: Path
+    kind: RunKind
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", Path(self.path))  # a str path is taken too
+
+    def config(self) -> dict:
+        """The run's config.json, checked (``RunKind.read_config``)."""
+        return self.kind.read_config(self.path)
+
+    def checkpoints(self) -> list[tuple[int, Path]]:
+        """(step, path) of every checkpoint in ``checkpoints/``, oldest first."""
+        folder = self.path / "checkpoints"
+        names = re.compile(self.kind.checkpoint_name)
+        found = [p for p in folder.glob("*") if names.fullmatch(p.name)] if folder.is_dir() else []
+        return sorted((self.kind.step_of(p), p) for p in found)
+
+    def newest_readable_checkpoint(
+        self, device: Any = "cpu", warn: Callable[[str], None] | None = None
+    ) -> Checkpoint | None:
+        """The newest checkpoint that reads, or None; each unreadable newer one (a save killed
+        half-way, a corrupt file) is skipped with a warning naming it (``warn``: a callable
+        taking the message; default ``warnings.warn``)."""
+        for step, path in reversed(self.checkpoints()):
+            try:
+                return Checkpoint(step, path, self.kind.read_checkpoint(path, device))
+            except (CheckpointError, OSError) as e:
+                msg = f"skipping unreadable checkpoint: {e}"
+                if warn is None:
+                    warnings.warn(msg, stacklevel=2)
+                else:
+                    warn(msg)
+        return None
+
+    def require_checkpoint(
+        self, device: Any = "cpu", warn: Callable[[str], None] | None = None
+    ) -> Checkpoint:
+        """``newest_readable_checkpoint``, or ``FileNotFoundError`` naming the folder."""
+        found = self.newest_readable_checkpoint(device, warn)
+        if found is None:
+            raise FileNotFoundError(
+                f"no readable checkpoints/{self.kind.checkpoint_hint} in {self.path}"
+            )
+        return found
+
+
+def open_run(path: str | Path, kinds: Sequence[RunKind]) -> RunFolder:
+    """The run folder at ``path`` as the one of ``kinds`` its config.json marks (its "kind";
+    the kind without a marker for a config.json without one); a missing or malformed
+    config.json is named."""
+    path = Path(path)
+    what = " / ".join(f"`{k.command}`" for k in kinds) + " run folder"
+    config = read_json(path / "config.json", what, ("task",))
+    marker = config.get("kind")
+    kind = next((k for k in kinds if k.marker == marker), None)
+    if kind is None:
+        kind = next(k for k in kinds if k.marker is None)
+    return RunFolder(path, kind)

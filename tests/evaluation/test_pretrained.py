@@ -19,16 +19,29 @@ def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "nav"
     args = ["train", "--task", "navigation", "--obs-mode", "us_heading", "--steps", "64",
             "--envs", "4", "--phantom-spacing", "2", "--env-option", "episode_length=50",
-            "--out", str(out)]  # fmt: skip
+            "--checkpoint-every", "32", "--out", str(out)]  # fmt: skip
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     return out
 
 
-def test_exported_weights_act_as_the_checkpoint(tiny_run, tmp_path):
-    from sonogym.agents.checkpoint import latest_readable_checkpoint, read_checkpoint
+def test_training_records_checkpoints_and_their_cpu_time(tiny_run):
+    from sonogym.agents.checkpoint import RL_RUN
+    from sonogym.agents.train import read_times
+    from sonogym.runs import RunFolder
 
-    ckpt = latest_readable_checkpoint(tiny_run)[0]
+    steps = [t for t, _ in RunFolder(tiny_run, RL_RUN).checkpoints()]
+    assert sorted(steps) == [0, 32, 64]  # --checkpoint-every 32
+    times = read_times(tiny_run / "checkpoints")
+    assert sorted(times) == [32, 64]
+    assert 0 < times[32]["cpu_s"] <= times[64]["cpu_s"] and times[64]["wall_s"] > 0
+
+
+def test_exported_weights_act_as_the_checkpoint(tiny_run, tmp_path):
+    from sonogym.agents.checkpoint import RL_RUN, read_checkpoint
+    from sonogym.runs import RunFolder
+
+    ckpt = RunFolder(tiny_run, RL_RUN).require_checkpoint().path
     dest = P.export_pretrained(tiny_run, "nav-test", root=tmp_path, notes="a test")
     assert P.available(tmp_path) == ["nav-test"]
     a, b = read_checkpoint(ckpt), read_checkpoint(dest / P.WEIGHTS)

@@ -8,8 +8,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
+from il_datasets import FEATURES, FPS, random_episodes, set_value, write
 
-from conftest import FEATURES, FPS, random_episodes, write
 from sonogym.imitation import lerobot_format as fmt
 from sonogym.imitation.reader import LeRobotFrames, load_stats, read_episodes
 from sonogym.imitation.writer import DatasetWriter, read_tasks
@@ -324,6 +324,68 @@ def test_bad_features_and_frames_are_refused(tmp_path):
     with pytest.raises(fmt.DatasetFormatError, match="length"):
         w.add_episode({**ep, "action": ep["action"][:-1]})
     assert w.num_episodes == 0 and not (tmp_path / "ds" / "data").exists()
+
+
+# -2e6: twice the documented bound, reader.MAX_ABS_VALUE
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, 1e30, -2e6])
+@pytest.mark.parametrize(("key", "component"), [("action", 2), ("observation.state", 0)])
+def test_non_finite_or_absurd_values_are_refused_naming_file_episode_frame_column(
+    tmp_path, value, key, component
+):
+    """One such value trained a policy whose weights were all NaN, with exit 0."""
+    root = tmp_path / "ds"
+    write(root, random_episodes(3))  # lengths 4, 6, 8: frame 7 is episode 1's frame 3
+    path = set_value(root, key, 7, component, value)
+    with pytest.raises(fmt.DatasetFormatError) as e:
+        LeRobotFrames(root)
+    msg = str(e.value)
+    assert str(path) in msg and "episode 1, frame 3" in msg
+    assert f"column {key}[{component}] is" in msg and "re-record" in msg
+
+
+def test_values_within_the_bound_read_back_exactly(tmp_path):
+    from sonogym.imitation.reader import MAX_ABS_VALUE
+
+    assert MAX_ABS_VALUE == 1e6  # the bound the docs state
+    root = tmp_path / "ds"
+    write(root, random_episodes(3))
+    set_value(root, "action", 7, 2, 0.5 * MAX_ABS_VALUE)
+    assert LeRobotFrames(root).frame(7)["action"][2].item() == 0.5 * MAX_ABS_VALUE
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e30])
+def test_stats_json_with_non_finite_or_absurd_values_is_refused(tmp_path, value):
+    root = tmp_path / "ds"
+    write(root, random_episodes(2))
+    path = root / fmt.STATS_PATH
+    stats = json.loads(path.read_text())
+    stats["action"]["mean"][1] = value  # json writes NaN / Infinity, and reads them back
+    path.write_text(json.dumps(stats))
+    with pytest.raises(fmt.DatasetFormatError, match=r"stats.json: action/mean holds"):
+        load_stats(root)
+
+
+def test_an_info_json_that_does_not_describe_the_data_is_refused(tmp_path):
+    root = tmp_path / "ds"
+    write(root, random_episodes(2))
+    path = root / fmt.INFO_PATH
+    good = json.loads(path.read_text())
+    # another action shape: the data hold 3 values per frame
+    info = json.loads(path.read_text())
+    info["features"]["action"]["shape"] = [4]
+    info["features"]["action"]["names"] = ["a", "b", "c", "d"]
+    path.write_text(json.dumps(info))
+    with pytest.raises(fmt.DatasetFormatError, match=r"action/min has shape \(3,\).*needs \(4,\)"):
+        load_stats(root)
+    with pytest.raises(fmt.DatasetFormatError, match="'action' holds 3 values per frame.*\\[4\\]"):
+        LeRobotFrames(root)
+    # another robot's features: a camera the stats (and the data) do not have
+    info = json.loads(json.dumps(good))
+    info["features"]["observation.images.wrist"] = {"dtype": "image", "shape": [8, 8, 3],
+                                                    "names": fmt.IMAGE_NAMES}  # fmt: skip
+    path.write_text(json.dumps(info))
+    with pytest.raises(fmt.DatasetFormatError, match="no statistics of 'observation.images.wrist'"):
+        load_stats(root)
 
 
 def test_delta_indices_stack_history_and_chunks_with_pads(tmp_path):

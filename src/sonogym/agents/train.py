@@ -32,6 +32,7 @@ and says how to resume.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -44,8 +45,8 @@ import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
 from sonogym.agents.checkpoint import (
+    RL_RUN,
     check_obs_version,
-    latest_readable_checkpoint,
     read_checkpoint,
     set_log_std_ceiling,
 )
@@ -62,6 +63,7 @@ from sonogym.agents.networks import log_std_ceiling, make_models
 from sonogym.envs.registry import check_task_name, get_task, make_vec
 from sonogym.progress import progress_bar
 from sonogym.runs import (
+    RunFolder,
     TrainingInterrupted,
     atomic_torch_save,
     atomic_write_json,
@@ -152,6 +154,27 @@ def train(
     return run_training(cfg, out, resume=resume, force=force, progress=progress, log=log)
 
 
+#: RSS growth of training per env and per byte of its rollout observations (rollouts x obs
+#: floats x 4), beyond the env's own: 64-step cpu-preset runs at 1 mm measured 1.9 (navigation,
+#: 4 -> 128 envs), 2.6 (reconstruction, 4 -> 32 envs, at the update's peak) and 3.7 (surgery,
+#: likewise): skrl's memory, the minibatches sampled from it and the update's activations.
+TRAINING_MEMORY_FACTOR = 4.0
+
+
+def check_training_memory(cfg: TrainConfig, obs_floats: int) -> None:
+    """Refuse a run whose rollout memory and update would not fit the device's free memory
+    (the env is built by now: what it holds is no longer free)."""
+    from sonogym.memory import check_fits, free_memory
+
+    r, n = cfg.params.rollouts, cfg.rl.num_envs
+    check_fits(
+        TRAINING_MEMORY_FACTOR * r * n * obs_floats * 4, free_memory(cfg.device),
+        f"{cfg.algo} training of {n} envs ({r} rollout steps of {obs_floats} observation "
+        "floats each)", "memory",
+        "use fewer envs (--envs), a larger --obs-downsample, or fewer rollouts",
+    )  # fmt: skip
+
+
 def load_train_config(out: str | Path) -> TrainConfig:
     """The ``TrainConfig`` a run folder was trained with (its ``config.json``)."""
     d = read_json(Path(out) / "config.json", "`sonogym train` run folder", ("task", "algo"))
@@ -203,15 +226,16 @@ def _run_training(
 
     start_ckpt = None
     if resume:
-        start_ckpt = latest_readable_checkpoint(out, warn=log)
+        start_ckpt = RunFolder(out, RL_RUN).newest_readable_checkpoint(warn=log)
         if start_ckpt is None:
             raise FileNotFoundError(f"nothing to resume: no readable checkpoint in {out}")
-        if start_ckpt[1] >= cfg.steps:
+        if start_ckpt.step >= cfg.steps:
             raise ValueError(
-                f"{out} already has {start_ckpt[1]} steps >= the requested {cfg.steps}; "
+                f"{out} already has {start_ckpt.step} steps >= the requested {cfg.steps}; "
                 "pass a larger --steps to train further"
             )
-    start = start_ckpt[1] if start_ckpt else 0
+        start_ckpt = dataclasses.replace(start_ckpt, state=None)  # the agent reads it below
+    start = start_ckpt.step if start_ckpt else 0
     threads_before = torch.get_num_threads()
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
@@ -224,6 +248,7 @@ def _run_training(
         stagger_episodes=cfg.rl.stagger_episodes,
     )  # fmt: skip
     adapter.update_stats = statistics_update(cfg.rl, start)
+    check_training_memory(cfg, adapter.observation_space.shape[0])  # before skrl allocates
     models = _models(cfg, adapter)
     ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(
@@ -236,7 +261,7 @@ def _run_training(
     agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
     ckpt_dir = out / "checkpoints"
     if start_ckpt is not None:
-        load_agent(agent, start_ckpt[0])
+        load_agent(agent, start_ckpt.path)
     resolved = {
         **cfg.to_dict(),
         "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
@@ -467,11 +492,11 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
 
     Why: the KL of a fixed change of the Gaussian's mean grows as 1/sigma^2, so with a fixed
     threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
-    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then
-    (surgery state seeds, docs/results.md). Scaled, the threshold bounds the mean's step per
-    update in action units instead, the same at every sigma. Tried on the surgery state
-    seeds it kept the learning rate 3-8x higher and made their tilt worse, so it is off by
-    default (docs/results.md)."""
+    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then.
+    Scaled, the threshold bounds the mean's step per update in action units instead, the same
+    at every sigma. Off by default: on the surgery state task it kept the learning rate 3-8x
+    higher and made the tilt worse (the reward barely paid for the tilt; the ``cpu`` preset's
+    w5 = 50 fixed that)."""
     base = rl.params(algo).kl_threshold
     if not rl.kl_follows_sigma or rl.final_log_std is None:
         return base
@@ -487,7 +512,7 @@ def statistics_update(rl: TaskRLConfig, step: int) -> bool:
     that had learned the task collapsed at 68 k steps after its statistics had moved the
     target's standardised depth by 1.2, 0.6 and 0.25 std per 12 k steps while its KL-adaptive
     learning rate, shrinking with sigma, sat at 1e-6: the policy could no longer follow its own
-    inputs (docs/results.md)."""
+    inputs."""
     return rl.standardize_steps == 0 or step < rl.standardize_steps
 
 

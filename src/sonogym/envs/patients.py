@@ -94,5 +94,17 @@ def resolve_patients(specs: Sequence[PatientSpec] | PatientSpec, spacing: float)
                 f"patient {s!r}: use an int phantom seed, a TotalSegmentator folder path or "
                 "'FOLDER@N' (variant N of that subject)"
             )
-        out.append(_load(s if isinstance(s, int) else str(Path(s).resolve()), float(spacing)))
+        out.append(_load(s if isinstance(s, int) else _folder(s), float(spacing)))
     return out
+
+
+def _folder(spec: str | Path) -> str:
+    """A patient folder's absolute path (the cache key); a symlink loop is named, not a
+    traceback (``Path.resolve`` raises ``RuntimeError`` for one before Python 3.13)."""
+    try:
+        return str(Path(spec).resolve())
+    except (RuntimeError, OSError) as e:
+        raise PatientError(
+            f"patient folder {spec}: its path cannot be resolved ({e}); a symlink in it points "
+            "back to itself: give the subject folder itself, or fix the link"
+        ) from None

@@ -92,7 +92,8 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -100,6 +101,7 @@ from sonogym.envs.spec import (
     SMALL_CONV3,
     A2CParams,
     Demo,
+    EnvMemory,
     Metric,
     PPOParams,
     TaskSpec,
@@ -149,6 +151,7 @@ class ReconstructionConfig:
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (DESIGN.md §5)
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
         object.__setattr__(
             self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
         )
@@ -260,6 +263,7 @@ class ReconstructionEnv(TorchVectorEnv):
                 f"target_vertebra {cfg.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
             )
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         self.scene = ProbeScene.from_config(cfg, num_envs, self.device, render=False)
         dev, n, size = self.device, num_envs, cfg.volume_size
@@ -639,6 +643,7 @@ SPEC = TaskSpec(
     demo=Demo(
         image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
     ),
+    memory=EnvMemory(per_env=2.24e6, per_patient=165e6, load_peak=220e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import gymnasium as gym
 
 from sonogym.envs import navigation, reconstruction, surgery
+from sonogym.envs.base import make_config
 from sonogym.envs.spec import TaskSpec
 
 _MODULES = (navigation, reconstruction, surgery)
@@ -51,6 +52,17 @@ def check_algo(task: str, algo: str) -> TaskSpec:
     if algo not in algos:
         raise ValueError(f"algorithm {algo!r} is not supported on {task}; supported: {list(algos)}")
     return spec
+
+
+def env_config(task: str, options: dict):
+    """The task's env config with ``options`` (its fields), built without building the env:
+    ``ValueError`` names an unknown option (with the valid ones) or a value the config
+    refuses, so a run can be checked before it starts."""
+    spec = get_task(task)
+    try:
+        return make_config(spec.config_cls, dict(options))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{task} env options: {e}") from None
 
 
 def make_vec(task: str, num_envs: int, **options):

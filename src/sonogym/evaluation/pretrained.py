@@ -21,7 +21,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from sonogym.runs import atomic_write_json, atomic_write_text, read_json
+from sonogym.runs import RunFolder, atomic_write_json, atomic_write_text, read_json
 
 #: Where shipped policies live (inside the installed package).
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
@@ -89,12 +89,7 @@ def export_pretrained(
     (``eval*.json``). Replaces an earlier export of the same name."""
     import re
 
-    from sonogym.agents.checkpoint import (
-        checkpoint_step,
-        export_acting_weights,
-        latest_readable_checkpoint,
-        run_config,
-    )
+    from sonogym.agents.checkpoint import RL_RUN, export_acting_weights, run_config
     from sonogym.agents.train import read_times
 
     if not re.fullmatch(r"[a-z0-9][a-z0-9_-]*", name):
@@ -102,12 +97,9 @@ def export_pretrained(
     run = Path(run)
     cfg = run_config(run)
     if checkpoint is None:
-        found = latest_readable_checkpoint(run)
-        if found is None:
-            raise FileNotFoundError(f"no readable checkpoints/agent_<t>.pt in {run}")
-        checkpoint = found[0]
+        checkpoint = RunFolder(run, RL_RUN).require_checkpoint().path
     checkpoint = Path(checkpoint)
-    step = checkpoint_step(checkpoint)
+    step = RL_RUN.step_of(checkpoint)
     dest = Path(PRETRAINED_DIR if root is None else root) / name
     tmp = dest.with_name(f".{name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)

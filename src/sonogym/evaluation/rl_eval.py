@@ -26,12 +26,15 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, run_policy
 from sonogym.runs import atomic_write_text, to_jsonable
 
 CONTROLLERS = ("policy", "expert", "random")
+#: Parallel envs of an evaluation unless given (at most one per trial).
+DEFAULT_ENVS = 16
 #: a ``ppo-sf`` run's policy without its safety filter (the PPO it trained: the filter acts
 #: only at test time), evaluated beside the filtered one by default
 UNFILTERED = "unfiltered"
@@ -104,6 +107,7 @@ def evaluate_run(
     dest = check_writable(Path(out) if out is not None else trained.path, name)
 
     filt = check_safety_filter(trained, safety_filter)
+    envs = min(trials, envs or DEFAULT_ENVS)
     episodes = run_controllers(
         trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint,
         safety_filter=filt,
@@ -115,6 +119,7 @@ def evaluate_run(
         }
         for c, ep in episodes.items()
     }
+    spread = {c: distribution(trained.task, ep["metrics"]) for c, ep in episodes.items()}
     track = get_task(trained.task).track
     meta = {
         "task": trained.task,
@@ -124,6 +129,7 @@ def evaluate_run(
         "protocol": name,
         "eval_seed": seed,
         "trials": trials,
+        "num_envs": envs,  # episode k ran in env k % num_envs: on patient (k % num_envs) % P
         "controllers": list(episodes),
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
@@ -150,10 +156,30 @@ def evaluate_run(
         **({"safety_filter": filt} if filt else {}),
         "env_overrides": to_jsonable(overrides),
         "results": results,
+        "distribution": spread,
     }
     atomic_write_text(dest / f"{stem}.json", json.dumps(table, indent=1))
-    atomic_write_text(dest / f"{stem}.md", format_table(results))
+    atomic_write_text(dest / f"{stem}.md", format_table(results, spread))
     return results
+
+
+def distribution(task: str, metrics: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """Per metric over episodes: the median and, for a metric with a ``tolerance``, the
+    fraction of episodes within it (``within``)."""
+    from sonogym.envs.registry import get_task
+
+    tol = {m.key: m for m in get_task(task).metrics if m.tolerance is not None}
+    out = {}
+    for k, v in metrics.items():
+        v = np.asarray(v, dtype=np.float64)
+        d = {"median": float(np.median(v))}
+        if k in tol:
+            m = tol[k]
+            ok = v <= m.tolerance if m.better == "lower" else v >= m.tolerance
+            d["within"] = float(ok.mean())
+            d["tolerance"] = m.tolerance
+        out[k] = d
+    return out
 
 
 def check_writable(folder: Path, name: str) -> Path:
@@ -260,7 +286,7 @@ def run_controllers(
     # evaluation images as simulated: training's per-episode imaging settings stay in training
     env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device,
                   "imaging_randomization": False}  # fmt: skip
-    env = make_vec(trained.task, min(trials, envs or 16), **env_kwargs)
+    env = make_vec(trained.task, min(trials, envs or DEFAULT_ENVS), **env_kwargs)
     out = {
         name: run_episodes(
             env, controller_policy(name, env, trained, seed, device, checkpoint, safety_filter),
@@ -272,11 +298,27 @@ def run_controllers(
     return out
 
 
-def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
-    """Markdown table: one row per controller, mean ± std per metric."""
+def format_table(
+    results: dict[str, dict[str, tuple[float, float]]],
+    spread: dict[str, dict[str, dict[str, float]]] | None = None,
+) -> str:
+    """Markdown table: one row per controller, mean ± std per metric; with ``spread``
+    (``distribution``) also the median and the share of episodes within a metric's tolerance."""
     metrics = sorted({k for r in results.values() for k in r})
     lines = ["| controller | " + " | ".join(metrics) + " |", "|---" * (len(metrics) + 1) + "|"]
     for name, r in results.items():
-        cells = [f"{r[k][0]:.3f} ± {r[k][1]:.3f}" if k in r else "-" for k in metrics]
+        cells = []
+        for k in metrics:
+            if k not in r:
+                cells.append("-")
+                continue
+            cell = f"{r[k][0]:.3f} ± {r[k][1]:.3f}"
+            d = (spread or {}).get(name, {}).get(k)
+            if d is not None:
+                cell += f" (median {d['median']:.3f}"
+                if "within" in d:
+                    cell += f"; {100 * d['within']:.0f} % within {d['tolerance']:g}"
+                cell += ")"
+            cells.append(cell)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

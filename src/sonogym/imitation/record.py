@@ -32,6 +32,7 @@ from sonogym.envs.registry import get_task, make_vec
 from sonogym.envs.rollout import rollout
 from sonogym.envs.spec import DatasetSpec
 from sonogym.imitation.lerobot_format import encode_png
+from sonogym.imitation.processor import PolicyFeatures
 from sonogym.imitation.writer import DatasetWriter
 from sonogym.progress import progress_bar
 from sonogym.runs import (
@@ -78,6 +79,21 @@ def info_features(task: str, action_dim: int) -> dict[str, dict[str, Any]]:
             out[f.key] = {"dtype": "float32", "shape": list(f.shape), "names": list(f.names)}
     out["action"] = {"dtype": "float32", "shape": [action_dim], "names": list(spec.action_names)}
     return out
+
+
+def check_task_features(task: str, features: PolicyFeatures, where: str) -> None:
+    """Refuse features (a dataset's, or those a run was trained on) that are not ``task``'s
+    dataset features: a policy trained on them cannot act in the task's env. ``where`` names
+    what says the task (a dataset folder, a run's config.json)."""
+    spec = get_task(task)  # an unknown task is named with the known ones
+    want = PolicyFeatures.from_info(info_features(task, len(spec.action_names)))
+    if features != want:
+        raise ValueError(
+            f"{where} names task {task!r}, but the features {features.to_dict()} are not "
+            f"{task}'s {want.to_dict()}: a policy trained on them cannot act in the {task} env. "
+            "Train on a dataset recorded for the task (sonogym record --task ...), or correct "
+            "the task named there"
+        )
 
 
 def quantize_images(x: torch.Tensor) -> torch.Tensor:

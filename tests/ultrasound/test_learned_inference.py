@@ -71,7 +71,7 @@ def _sim(small_phantom, **kw) -> LearnedSimulator:
 def test_fast_path_matches_the_reference_on_the_shipped_nets(small_phantom, env_slices):
     ref = _sim(small_phantom, reference=True).simulate(env_slices)
     fast = _sim(small_phantom).simulate(env_slices)
-    assert (fast - ref).abs().max() < 1e-4
+    assert (fast - ref).abs().max() < 1e-5  # measured 2e-6: summation order only
     half = _sim(small_phantom, precision="bfloat16").simulate(env_slices)
     err = (half - ref).abs()
     assert err.mean() < 2e-3 and err.max() < 0.1

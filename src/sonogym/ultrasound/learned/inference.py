@@ -5,7 +5,9 @@ What it changes against calling the module, and why (measurements: benchmarks/RE
 "Learned ultrasound"):
 
 * weights are cast once to the working precision (``float32`` or ``bfloat16``) and kept in
-  channels-last layout, and activations stay in that precision and layout from layer to layer.
+  channels-last layout, and activations stay in that precision and layout from layer to layer
+  (but for the top level's: oneDNN answers the one-channel input in NCHW; forcing
+  channels-last there gained nothing measurable).
   Under ``torch.autocast`` every convolution re-cast its float32 weights on every call, and
   oneDNN's channels-last kernels (transposed convolutions above all) are 2-3x faster than its
   NCHW ones here;
@@ -21,7 +23,7 @@ What it changes against calling the module, and why (measurements: benchmarks/RE
 * LeakyReLU and the residual sums run in place.
 
 The layers, their order and their arithmetic are the module's: in float32 images match the
-module's to ~1e-6 (summation order), in bfloat16 to ~5e-4 on average (tests; the model card's
+module's to a few 1e-6 (summation order), in bfloat16 to ~5e-4 on average (tests; the model card's
 held-out figures are unchanged to 3 decimals, docs/learned.md). In bfloat16 an image does not
 depend on the others in its batch, bit for bit; in float32 to ~1e-6 (oneDNN picks its
 convolution kernels by batch size, for the module too). The group norm's statistics, like

@@ -1,6 +1,7 @@
 """Env-steps per second with random actions (images included), CPU and CUDA when present.
 
     python benchmarks/envs.py [--envs 16 128] [--steps 50] [--device cpu]
+        [--simulator learned --learned-precision bfloat16]
 
 Prints one table. Budget (DESIGN.md §7): >= 500 env-steps/s for 128 navigation envs on 2 cores.
 Phantom seed 0 at the default 1 mm; navigation with and without the arm in the loop. The last
@@ -60,6 +61,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--device", nargs="+", default=None)
     ap.add_argument("--simulator", default="physical")
+    ap.add_argument("--learned-precision", default=None, help='"float32" or "bfloat16"')
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--tasks", nargs="+", default=["navigation", "reconstruction", "surgery"])
     args = ap.parse_args()
@@ -72,6 +74,8 @@ def main() -> None:
             robots = ("kuka_med14", None) if name == "navigation" else ("default",)
             for robot in robots:
                 kw = {} if robot == "default" else {"robot": robot}
+                if args.learned_precision:
+                    kw["learned_precision"] = args.learned_precision
                 for n in args.envs:
                     r = bench(name, n, args.steps, device, simulator=args.simulator, **kw)
                     rows.append(

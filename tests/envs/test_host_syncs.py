@@ -60,10 +60,8 @@ def device_mode_checks(monkeypatch):
     monkeypatch.setattr(sonogym.checks, "sync_checks", lambda device: False)
 
 
-@pytest.mark.parametrize("task", ["navigation", "reconstruction", "surgery"])
-def test_a_step_reads_the_host_only_where_it_must(task, device_mode_checks, monkeypatch):
-    torch.set_num_threads(1)
-    env = make_vec(task, 4, phantom_spacing=0.002)
+def _count_step_reads(env, monkeypatch, steps: int = 4):
+    """(host reads by site, ``tolist`` calls by site) of ``steps`` random steps of ``env``."""
     env.reset(seed=0)
     gen = torch.Generator().manual_seed(1)
     low, high = (torch.as_tensor(b) for b in (env.action_space.low, env.action_space.high))
@@ -78,14 +76,35 @@ def test_a_step_reads_the_host_only_where_it_must(task, device_mode_checks, monk
         return original(self)
 
     monkeypatch.setattr(torch.Tensor, "tolist", counted_tolist)
-    steps = 4
     with counter:
         for _ in range(steps):
             env.step(act())
+    monkeypatch.setattr(torch.Tensor, "tolist", original)
+    return counter.sites, lists
+
+
+@pytest.mark.parametrize("task", ["navigation", "reconstruction", "surgery"])
+def test_a_step_reads_the_host_only_where_it_must(task, device_mode_checks, monkeypatch):
+    torch.set_num_threads(1)
+    steps = 4
+    sites, lists = _count_step_reads(make_vec(task, 4, phantom_spacing=0.002), monkeypatch, steps)
     assert not lists, f"tolist() in a step: {dict(lists)}"
-    extra = {k: v for k, v in counter.sites.items() if k not in ALLOWED}
+    extra = {k: v for k, v in sites.items() if k not in ALLOWED}
     assert not extra, f"host reads in {task}'s step: {extra}"
-    assert counter.sites[("envs/base.py", "step")] == steps  # the autoreset check, once
+    assert sites[("envs/base.py", "step")] == steps  # the autoreset check, once
+
+
+def test_a_learned_step_reads_only_the_sizes_of_its_net_groups(device_mode_checks, monkeypatch):
+    """With the learned simulator a step adds one read: how many envs each net images (the
+    envs of a net run as one batch)."""
+    torch.set_num_threads(1)
+    steps = 4
+    env = make_vec("navigation", 4, phantom_spacing=0.002, simulator="learned",
+                   learned_nets=(0, 1))  # fmt: skip
+    sites, lists = _count_step_reads(env, monkeypatch, steps)
+    assert dict(lists) == {("ultrasound/learned/simulator.py", "_groups"): steps}
+    extra = {k: v for k, v in sites.items() if k not in ALLOWED}
+    assert not extra, f"host reads in a learned step: {extra}"
 
 
 def test_checks_raise_the_same_message_on_both_paths(monkeypatch):

@@ -1,6 +1,8 @@
 """simulator="learned" in the envs: nets drawn per env at resets as configured, images of the
 declared spaces, interchangeable with the model-based simulator behind one interface."""
 
+from dataclasses import replace
+
 import gymnasium as gym
 import pytest
 import torch
@@ -9,6 +11,7 @@ import sonogym  # noqa: F401
 from sonogym.envs.navigation import NavigationEnv
 from sonogym.ultrasound import UltrasoundSimulator
 from sonogym.ultrasound.learned.shipped import shipped_weights
+from sonogym.ultrasound.randomization import randomized_from_display
 
 torch.set_num_threads(1)
 FAST = dict(patients=(0,), phantom_spacing=0.002, robot=None)
@@ -28,7 +31,7 @@ def test_nets_switch_at_resets_as_configured():
     sim = env.scene.simulator
     s = env.scene.slices()
     for k in (0, 1):
-        alone = sim.simulate(s, nets=torch.full((4,), k))
+        alone = sim.simulate(replace(s, net_index=torch.full((4,), k)))
         rows = env.scene.nets.index == k
         assert torch.allclose(obs[rows], alone[rows], atol=1e-5)
     # a partial reset redraws only the reset envs' nets
@@ -127,6 +130,27 @@ def test_surgery_volume_slice_by_slice():
     # each elevation slice is the 2-D net applied to that slice alone
     for e in (0, 4):
         one = type(s)(s.ct[:, e : e + 1], s.labels[:, e : e + 1], s.origin[:, e : e + 1],
-                      s.row_step, s.col_step, s.seed, s.patient_index, s.probe)  # fmt: skip
-        assert torch.allclose(sc.simulator.simulate(one, nets=torch.zeros(1)), obs[:, e : e + 1],
-                              atol=1e-5)  # fmt: skip
+                      s.row_step, s.col_step, s.seed, s.patient_index, s.probe,
+                      torch.zeros(1, dtype=torch.long))  # fmt: skip
+        assert torch.allclose(sc.simulator.simulate(one), obs[:, e : e + 1], atol=1e-5)
+
+
+def test_imaging_randomisation_acts_on_each_envs_own_net():
+    """Learned images with the episode's imaging settings: each env's net (carried by its
+    slices), then the display-image randomisation of that env's settings."""
+    env = NavigationEnv(
+        6, simulator="learned", learned_nets=(0, 1), imaging_randomization=True, **FAST
+    )
+    obs, _ = env.reset(seed=3)
+    sc = env.scene
+    assert set(sc.nets.index.tolist()) == {0, 1}  # both nets in one batch
+    s = sc.slicer(sc.probe_pos, sc.probe_rot, sc.patient_index)
+    own = torch.empty_like(obs)
+    for k in (0, 1):
+        rows = sc.nets.index == k
+        own[rows] = sc.simulator.simulate(replace(s, net_index=torch.full((6,), k)))[rows]
+    expected = randomized_from_display(own, sc.imaging_settings, sc.probe_geometry)
+    assert torch.allclose(obs, expected, atol=1e-5)
+    assert (obs - own).abs().mean() > 0.01  # the settings change the images
+    ids = torch.tensor([4, 1])
+    assert torch.allclose(sc.observe("us", ids), obs[ids], atol=1e-5)

@@ -204,3 +204,45 @@ def test_us_heading_observes_the_us_image_and_the_reached_yaw():
     env.scene.reset(ids, torch.cat([goal[:2], flipped[2:]]))
     h = env._get_observations(None)["heading"]
     assert float(h[:2, 0].max()) < -0.99 and float(h[2:, 0].min()) > 0.99
+
+
+def test_measured_command_is_computed_once_per_pose_and_stays_fresh(monkeypatch):
+    """A step reads the reached pose's command several times (yaw lead, info, heading,
+    metrics) but computes it once; after steps, partial resets and direct pose writes the
+    kept value equals a fresh computation from the pose."""
+    env = NavigationEnv(4, obs_mode="us_heading", episode_length=3, **FAST)
+    sc = env.scene
+    env.reset(seed=0)
+    calls = []
+    original = type(sc.skin).command_from_pose
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(type(sc.skin), "command_from_pose", counted)
+
+    def fresh(ids=slice(None)):
+        return original(sc.skin, sc.probe_pos[ids], sc.probe_rot[ids], sc.patient_index[ids])
+
+    gen = torch.Generator().manual_seed(0)
+    for step in range(7):  # episodes end at steps 3 and 6: in-step autoresets
+        calls.clear()
+        _, _, _, trunc, info = env.step(torch.rand(4, 3, generator=gen) * 2 - 1)
+        # one computation after the arm moved, one more after an autoreset moved the probes
+        assert len(calls) == 1 + bool(trunc.any()), (step, len(calls))
+        for got, want in zip(sc.measured_command(), fresh(), strict=True):
+            assert torch.equal(got, want)
+        ids = torch.tensor([1, 3])
+        for got, want in zip(sc.measured_command(ids), fresh(ids), strict=True):
+            assert torch.equal(got, want)
+    env.reset(options={"reset_mask": torch.tensor([False, True, False, False])})
+    assert torch.equal(torch.stack(sc.measured_command(), -1), torch.stack(fresh(), -1))
+    # a write to the pose, in place or by assignment, is seen
+    sc.probe_pos[2, 0] += 0.01
+    assert torch.equal(sc.measured_command()[0], fresh()[0])
+    sc.probe_rot = sc.probe_rot.flip(0).clone()
+    assert torch.equal(sc.measured_command()[2], fresh()[2])
+    # the caller owns what it gets
+    sc.measured_command()[0].zero_()
+    assert torch.equal(sc.measured_command()[0], fresh()[0])

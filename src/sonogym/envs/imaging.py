@@ -4,7 +4,9 @@
 ``LearnedSimulator`` over the nets of ``learned_nets`` (ints: shipped nets by index, strings:
 paths to ``generator.pt`` files). Like the paper, each env draws one net of the set uniformly
 at every episode reset, from the env's seeded generator (``NetChoice``), so a vectorised env
-shows several nets at once; ``learned_nets=(4,)`` uses net 4 only.
+shows several nets at once; ``learned_nets=(4,)`` uses net 4 only. The scene hands each env's
+net to the simulator with its slices (``Slices.net_index``), so every simulator is called the
+same way, ``simulator.simulate(slices)``.
 
 Histogram matching: the LUT that maps the envs' CT onto each net's training CT is fitted once,
 at construction, on CT slices at fixed pseudo-random probe poses over every patient's lower back
@@ -98,16 +100,6 @@ class NetChoice:
         """Nets for ``env_ids`` from uniforms ``u`` in [0, 1) of the same length."""
         k = (u.to(self.index.device) * self.num_nets).long().clamp_(0, self.num_nets - 1)
         self.index[env_ids] = k
-
-
-def simulate_us(scene, slices, env_ids=None) -> torch.Tensor:
-    """Ultrasound of ``slices`` by ``scene.simulator``; with the learned simulator each env's
-    image comes from its own net (``scene.nets``)."""
-    sim = scene.simulator
-    if scene.simulator_name == "learned":
-        idx = scene.nets.index if env_ids is None else scene.nets.index[env_ids]
-        return sim.simulate(slices, nets=idx)
-    return sim.simulate(slices)
 
 
 def learned_nets_tuple(value) -> tuple:

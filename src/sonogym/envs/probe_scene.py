@@ -7,6 +7,8 @@ sliced from the pose the arm actually reached.
 
 from __future__ import annotations
 
+import operator
+
 import torch
 
 from sonogym.envs.scene import ARM_TILT_MARGIN, ImagingReach, PatientScene
@@ -58,6 +60,7 @@ class ProbeScene(PatientScene):
         self.robot = robot
         self.reachable = torch.ones(num_envs, dtype=torch.bool, device=device)
         self._cmd = torch.zeros(num_envs, 4, device=device)  # last command (x, z, yaw, tilt)
+        self._measured = None  # ((probe_pos, probe_rot), their versions, measured command)
         if robot is not None:
             self._init_robot(robot)
         if render:
@@ -166,9 +169,23 @@ class ProbeScene(PatientScene):
         self.reachable[ids] = res.reachable
 
     def measured_command(self, sl=slice(None)):
-        """(x, z, yaw, tilt) of the reached probe poses."""
-        pid = self.patient_index[sl]
-        return self.skin.command_from_pose(self.probe_pos[sl], self.probe_rot[sl], pid)
+        """(x, z, yaw, tilt) of the reached probe poses of the envs ``sl`` (fresh tensors).
+
+        A navigation step reads it four times (the yaw lead, the info, a heading observation,
+        episode metrics) between two pose changes, so the envs' values are computed once per
+        pose and kept: the cache is keyed on the pose tensors themselves (identity and version
+        counter), so any write to ``probe_pos`` or ``probe_rot``, in place or by assignment,
+        invalidates it."""
+        key = (self.probe_pos, self.probe_rot)
+        if torch.is_inference(key[0]) or torch.is_inference(key[1]):  # no version counter
+            pid = self.patient_index[sl]
+            return self.skin.command_from_pose(self.probe_pos[sl], self.probe_rot[sl], pid)
+        versions = (key[0]._version, key[1]._version)
+        cached = self._measured
+        if cached is None or cached[1] != versions or any(map(operator.is_not, cached[0], key)):
+            value = self.skin.command_from_pose(*key, self.patient_index)
+            self._measured = cached = (key, versions, value)
+        return tuple(t[sl].clone() for t in cached[2])
 
 
 def probe_track(env, info) -> torch.Tensor:

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from sonogym.anatomy import Patient, SkinSurface
-from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator, simulate_us
+from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator
 from sonogym.envs.patients import resolve_patients
 from sonogym.memory import return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
@@ -238,35 +238,34 @@ class PatientScene:
         return self.probe_geometry.shape
 
     def slices(self, env_ids: torch.Tensor | None = None):
-        """CT and label slices at the reached probe poses of ``env_ids`` (None: all)."""
+        """CT and label slices at the reached probe poses of ``env_ids`` (None: all), with each
+        env's learned net (``Slices.net_index``; the model-based presets ignore it)."""
         sl = slice(None) if env_ids is None else env_ids
-        return self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
+        s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
+        return replace(s, net_index=self.nets.index[sl])
 
     def observe(self, mode: str, env_ids: torch.Tensor | None = None) -> torch.Tensor:
-        """Images of the reached probe poses (see ``image_observation``), (K, E, H, W)."""
-        return image_observation(self.slices(env_ids), mode, self, env_ids)
-
-
-def image_observation(slices, mode: str, scene: PatientScene, env_ids=None) -> torch.Tensor:
-    """An image observation of sliced CT + labels: "us" the ultrasound simulated by
-    ``scene.simulator`` (N, E, H, W) in [0, 1] (the simulator is built only for this mode; the
-    learned one uses each env's net), "ct" the CT windowed from ``CT_WINDOW`` to [0, 1],
-    "labels" the uint8 ids. ``env_ids``: the envs the slices belong to (None: all)."""
-    if mode == "us":
-        if scene.imaging_randomization is None:
-            return simulate_us(scene, slices, env_ids).float()
-        settings = scene.imaging_settings
+        """An image observation of the reached probe poses of ``env_ids`` (None: all),
+        (K, E, H, W): "us" the ultrasound of ``simulator`` in [0, 1] (built only for this mode;
+        the learned one images each env with its own net), with the episode's imaging settings
+        when ``randomize_imaging`` is on; "ct" the CT windowed from ``CT_WINDOW`` to [0, 1];
+        "labels" the uint8 ids."""
+        if mode not in ("us", "ct", "labels"):
+            raise ValueError(f"unknown image mode {mode!r}")
+        slices = self.slices(env_ids)
+        if mode == "ct":
+            lo, hi = CT_WINDOW
+            return ((slices.ct - lo) / (hi - lo)).clamp(0, 1)
+        if mode == "labels":
+            return slices.labels
+        if self.imaging_randomization is None:
+            return self.simulator.simulate(slices).float()
+        settings = self.imaging_settings
         settings = settings if env_ids is None else settings[env_ids]
-        probe, sim = scene.probe_geometry, scene.simulator
-        if scene.simulator_name == "physical":  # exact: on the envelope, before log compression
-            raw = sim.simulate_raw(slices)
-            return imaging_rand.randomized_display(raw, settings, probe, sim.model.gain)
+        probe = self.probe_geometry
+        if self.simulator_name == "physical":  # exact: on the envelope, before log compression
+            raw = self.simulator.simulate_raw(slices)
+            return imaging_rand.randomized_display(raw, settings, probe, self.simulator.model.gain)
         return imaging_rand.randomized_from_display(
-            simulate_us(scene, slices, env_ids).float(), settings, probe
+            self.simulator.simulate(slices).float(), settings, probe
         )
-    if mode == "ct":
-        lo, hi = CT_WINDOW
-        return ((slices.ct - lo) / (hi - lo)).clamp(0, 1)
-    if mode == "labels":
-        return slices.labels
-    raise ValueError(f"unknown image mode {mode!r}")

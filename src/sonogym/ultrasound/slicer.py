@@ -76,6 +76,10 @@ class Slices:
             patient-frame position and this seed only).
         patient_index: (N,) int64, index of each env's patient in the slicer.
         probe: the pixel grid.
+        net_index: (N,) int64 or None, the learned net that images each env (an index into a
+            ``LearnedSimulator``'s nets; the slicer leaves it None, a scene sets it with
+            ``dataclasses.replace``). Model-based simulators ignore it; a learned simulator
+            given None picks one net for the whole batch.
     """
 
     ct: torch.Tensor
@@ -86,6 +90,7 @@ class Slices:
     seed: torch.Tensor
     patient_index: torch.Tensor
     probe: ProbeGeometry
+    net_index: torch.Tensor | None = None
 
     @property
     def num_envs(self) -> int:
@@ -121,6 +126,7 @@ class Slices:
             self.seed[index],
             self.patient_index[index],
             self.probe,
+            None if self.net_index is None else self.net_index[index],
         )
 
     @staticmethod
@@ -131,8 +137,13 @@ class Slices:
         probe = parts[0].probe
         if any(p.probe != probe for p in parts):
             raise ValueError("Slices.cat: all parts must share one ProbeGeometry")
+        nets = [p.net_index for p in parts]
+        if any(n is None for n in nets) and any(n is not None for n in nets):
+            raise ValueError("Slices.cat: give every part a net_index, or none")
         return Slices(
-            *(torch.cat([getattr(p, f) for p in parts]) for f in _TENSOR_FIELDS), probe=probe
+            *(torch.cat([getattr(p, f) for p in parts]) for f in _TENSOR_FIELDS),
+            probe=probe,
+            net_index=None if nets[0] is None else torch.cat(nets),
         )
 
 

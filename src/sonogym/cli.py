@@ -807,6 +807,38 @@ def export(
 
 
 @app.command()
+def reproduce(
+    name: Annotated[
+        str,
+        typer.Argument(
+            help="The published result: table1, navigation, reconstruction, population, "
+            "imitation or curves."
+        ),
+    ],
+    preset: Annotated[
+        str, typer.Option(help="cpu (the recipe as published) or paper (the paper's settings).")
+    ] = "cpu",
+    dry_run: Annotated[
+        bool, typer.Option(help="Print the commands and their CPU time; run nothing.")
+    ] = False,
+) -> None:
+    """Run the train / record / il-train / eval / report commands that make a published result
+    (docs/results.md), in order, skipping those whose output is complete; run it again to
+    resume."""
+    import subprocess
+
+    from sonogym import reproduce as R
+
+    try:
+        R.reproduce(name, preset, dry_run, log=typer.echo)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    except subprocess.CalledProcessError as e:
+        typer.echo(f"stopped: `{e.cmd}` exited with {e.returncode}; fix it and run again")
+        raise typer.Exit(e.returncode) from None
+
+
+@app.command()
 def view(
     task: Annotated[
         str | None, typer.Option(help="Step this task's env: navigation, reconstruction, surgery.")

@@ -1,0 +1,335 @@
+"""``sonogym reproduce NAME``: the commands that make each published result, in order.
+
+A recipe is a list of ``sonogym`` commands (train, record, il-train, sweep, eval, report, plot)
+exactly as docs/results.md prints them beside the result. ``reproduce`` runs them one after
+another, each in its own process, and skips a command whose output is already complete:
+
+* ``train``: the run's checkpoint at the final step (``agent_<steps>.pt``); a run folder
+  without it is continued with ``--resume``;
+* ``il-train``: the run's ``step_<steps>.pt``; a partial run continues with ``--resume``;
+* ``record``: the dataset's ``meta/info.json`` holds the asked number of episodes; a partial
+  dataset continues with ``--resume``;
+* ``sweep``: its ``sweep.md``; ``eval``: its table (``eval.json``, ``eval-<protocol>.json``
+  or ``eval-<name>.json``); ``report``: ``report.md``; ``plot``: ``curves.md``, unless a
+  command before it in the recipe still has to run (it reads that command's output).
+
+So an interrupted reproduction is resumed by running the same command again. ``--dry-run``
+prints the commands with the CPU time each took when the published figure was made (the
+project's 2-core CPU, one torch thread per run; docs/results.md gives the load of each).
+
+Presets: ``cpu`` is the recipe as published. ``paper`` trains with the paper's settings
+(``--preset paper`` and the paper's step count, from the task's ``TrainingDefaults``) instead
+of the CPU recipe's steps, network, env count and image pooling, and writes under
+``runs/paper/`` and ``reports/paper/``; its CPU time is the CPU recipe's scaled by the env
+steps, an order of magnitude for planning (the paper's runs are meant for a GPU).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+#: The presets a recipe can be run with.
+PRESETS = ("cpu", "paper")
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """One ``sonogym`` command of a recipe and the CPU minutes it took when published."""
+
+    argv: tuple[str, ...]  # the arguments after ``sonogym``
+    cpu_min: float  # CPU minutes measured for the published figure (0: under a minute)
+
+    @property
+    def command(self) -> str:
+        return "sonogym " + shlex.join(self.argv)
+
+    def option(self, name: str, default: str | None = None) -> str | None:
+        """The value given to ``--name`` (the last one if given twice)."""
+        value = default
+        for i, a in enumerate(self.argv[:-1]):
+            if a == name:
+                value = self.argv[i + 1]
+        return value
+
+
+def _step(command: str, cpu_min: float = 0.0) -> Step:
+    argv = shlex.split(command)
+    if argv[0] != "sonogym":
+        raise ValueError(f"a recipe step is a sonogym command, not {command!r}")
+    return Step(tuple(argv[1:]), cpu_min)
+
+
+#: CPU minutes of a command without a measured figure: an evaluation of 100 episodes on 50
+#: envs, a report or a plot.
+DEFAULT_CPU_MINUTES = {"eval": 3.0, "report": 1.0, "plot": 1.0}
+
+
+def _steps(commands: Sequence[str], cpu_min: dict[str, float]) -> list[Step]:
+    """One Step per command; a command that makes a folder of ``cpu_min`` (its ``--out``) gets
+    that folder's CPU minutes, others ``DEFAULT_CPU_MINUTES``."""
+    out = []
+    for command in commands:
+        s = _step(command)
+        minutes = cpu_min.get(s.option("--out") or "", DEFAULT_CPU_MINUTES.get(s.argv[0], 0.0))
+        out.append(dataclasses.replace(s, cpu_min=minutes))
+    return out
+
+
+def _surgery_state(seed: int) -> list[str]:
+    run = f"runs/surg-state-dist-s{seed}"
+    return [
+        "sonogym train --task surgery --algo ppo --obs-mode state --net lean --env-option "
+        f"unsafe_distance_penalty=100 --seed {seed} --steps 120000 --out {run}",
+        f"sonogym eval --run {run} --protocol idt --envs 50",
+        f"sonogym eval --run {run} --protocol odt-patient --envs 50",
+    ]
+
+
+_NAV_SMALL = "--envs 64 --seed 0 --net small --threads 1 --obs-downsample 4"
+_NAV_SWEEP = "--preset cpu --steps 2400 --max-concurrent 1"
+
+#: Every published result's commands, in order (docs/results.md prints the same commands).
+RECIPES: dict[str, list[str]] = {
+    "table1": [
+        *_surgery_state(0),
+        *_surgery_state(1),
+        *_surgery_state(2),
+        "sonogym train --task surgery --algo ppo-sf --obs-downsample 2 --steps 51968 --seed 0 "
+        "--out runs/surg-img-w5-s0",
+        "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50",
+        "sonogym eval --run runs/surg-img-w5-s0 --protocol odt-patient --envs 50",
+        "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50 --filter-mode zero "
+        "--name idt-zero",
+        "sonogym record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb",
+        "sonogym il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 "
+        "--out runs/il-surg-act",
+        "sonogym eval --run runs/il-surg-act --envs 50",
+        "sonogym eval --run runs/il-surg-act --protocol odt-patient --envs 50",
+        "sonogym report --task surgery --runs runs/surg-state-dist-s0 runs/surg-state-dist-s1 "
+        "runs/surg-state-dist-s2 runs/surg-img-w5-s0 runs/il-surg-act "
+        "--out docs/results/surgery-dist",
+    ],
+    "navigation": [
+        f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 9024 "
+        "--out runs/nav-ppo-small-s0",
+        f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 4512 "
+        "--protocol odt-sim --out runs/nav-ppo-small-lb-s0",
+        "sonogym eval --run runs/nav-ppo-small-s0 --protocol idt",
+        "sonogym eval --run runs/nav-ppo-small-s0 --protocol odt-patient",
+        "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol idt",
+        "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim",
+        "sonogym report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 "
+        "--out docs/results/navigation",
+    ],
+    "reconstruction": [
+        "sonogym train --task reconstruction --algo ppo --envs 64 --steps 4000 --seed 0 "
+        "--net small --threads 1 --out runs/recon-ppo-small-s0",
+        "sonogym eval --run runs/recon-ppo-small-s0 --protocol idt",
+        "sonogym report --task reconstruction --runs runs/recon-ppo-small-s0 "
+        "--out docs/results/reconstruction",
+    ],
+    "population": [
+        "sonogym train --task navigation --algo ppo --preset cpu --patients 100-131 "
+        "--obs-mode us_heading --net lean --seed 0 --steps 26496 --out runs/nav-pop32-head-lean-s0",
+        "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50",
+        "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50 --protocol odt-patient "
+        "--held-out 5",
+        "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50 "
+        "--patients tests/data/totalsegmentator_example --name real-subject",
+    ],
+    "imitation": [
+        f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
+        "--out runs/sweep-nav-ppo",
+        "sonogym record --task navigation --preset mb --episodes 1000 --envs 16 "
+        "--out runs/ds-nav-mb-1000",
+        "sonogym il-train --policy act --data runs/ds-nav-mb-1000 --image-size 100x75 "
+        "--steps 128000 --threads 1 --out runs/il-nav-act-1000",
+        "sonogym il-train --policy diffusion --data runs/ds-nav-mb-1000 --image-size 100x75 "
+        "--steps 80000 --threads 1 --out runs/il-nav-dp-1000",
+        "sonogym report --task navigation --runs runs/sweep-nav-ppo/runs runs/il-nav-act-1000 "
+        "runs/il-nav-dp-1000 --out docs/results/navigation-il --no-curves",
+    ],
+    "curves": [
+        f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
+        "--out runs/sweep-nav-ppo",
+        f"sonogym sweep --task navigation --algo a2c --seeds 1 {_NAV_SWEEP} "
+        "--out runs/sweep-nav-a2c",
+        "sonogym plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs "
+        "--out docs/results/navigation-sweep --metric 'Episode / return' "
+        "--metric 'Episode / position_error_mm'",
+    ],
+}
+
+#: CPU minutes of each run when its published figure was made (docs/results.md); evaluations,
+#: reports and plots take a minute or a few.
+CPU_MINUTES: dict[str, float] = {
+    **{f"runs/surg-state-dist-s{s}": m for s, m in enumerate((28.9, 28.6, 29.8))},
+    "runs/surg-img-w5-s0": 98.2,
+    "runs/ds-surg-mb": 1.5,
+    "runs/il-surg-act": 27.0,
+    "runs/nav-ppo-small-s0": 45.0,
+    "runs/nav-ppo-small-lb-s0": 27.0,
+    "runs/recon-ppo-small-s0": 27.0,
+    "runs/nav-pop32-head-lean-s0": 120.0,
+    "runs/sweep-nav-ppo": 15.0,
+    "runs/sweep-nav-a2c": 5.0,
+    "runs/ds-nav-mb-1000": 19.4,
+    "runs/il-nav-act-1000": 82.9,
+    "runs/il-nav-dp-1000": 79.5,
+}
+
+
+def recipe(name: str, preset: str = "cpu") -> list[Step]:
+    """The steps of result ``name`` under ``preset`` ("cpu" or "paper")."""
+    if name not in RECIPES:
+        raise ValueError(f"no result named {name!r}; choose one of {', '.join(RECIPES)}")
+    if preset not in PRESETS:
+        raise ValueError(f"preset {preset!r}: choose one of {', '.join(PRESETS)}")
+    steps = _steps(RECIPES[name], CPU_MINUTES)
+    return steps if preset == "cpu" else [_paper(s) for s in steps]
+
+
+# Options of a CPU recipe's training command that the paper preset sets instead.
+_CPU_TRAINING_OPTIONS = ("--steps", "--net", "--envs", "--preset", "--obs-downsample", "--threads")
+
+
+#: Where the paper preset writes instead, so its runs and reports never mix with the CPU
+#: recipe's (or overwrite the published figures).
+_PAPER_FOLDERS = (("runs/", "runs/paper/"), ("docs/results/", "reports/paper/"))
+
+
+def _paper(step: Step) -> Step:
+    """``step`` under the paper preset: training with ``--preset paper`` and the paper's step
+    count in place of the CPU recipe's steps, network, env count and image pooling; every
+    output under ``runs/paper/`` and ``reports/paper/``."""
+    argv = [_paper_path(a) for a in step.argv]
+    if step.argv[0] not in ("train", "sweep"):
+        return Step(tuple(argv), step.cpu_min)
+    kept, i = [], 0
+    while i < len(argv):
+        if argv[i] in _CPU_TRAINING_OPTIONS:
+            i += 2
+            continue
+        kept.append(argv[i])
+        i += 1
+    timesteps, num_envs = _paper_schedule(step.option("--task", "navigation"))
+    kept += ["--preset", "paper", "--steps", str(timesteps)]
+    cpu_steps = float(step.option("--steps", "0") or 0) * int(step.option("--envs", "64") or 64)
+    scale = timesteps * num_envs / cpu_steps if cpu_steps else 0.0
+    return Step(tuple(kept), round(step.cpu_min * scale, 1))
+
+
+def _paper_path(arg: str) -> str:
+    for cpu, paper in _PAPER_FOLDERS:
+        if arg.startswith(cpu):
+            return paper + arg[len(cpu) :]
+    return arg
+
+
+def _paper_schedule(task: str) -> tuple[int, int]:
+    """(env steps per env, envs) of the task's paper preset."""
+    from sonogym.agents.configs import task_config
+
+    cfg = task_config(task, "paper")
+    return int(cfg.timesteps), int(cfg.num_envs)
+
+
+# ----------------------------------------------------------------------------- done checks
+
+
+def _out(step: Step) -> Path:
+    return Path(step.option("--out") or step.option("--run") or ".")
+
+
+def _eval_table(step: Step) -> Path:
+    name = step.option("--name") or step.option("--protocol", "idt")
+    stem = "eval" if name == "idt" else f"eval-{name}"
+    return Path(step.option("--out") or step.option("--run") or ".") / f"{stem}.json"
+
+
+def _records(path: Path) -> int:
+    try:
+        return int(json.loads((path / "meta" / "info.json").read_text())["total_episodes"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def status(step: Step) -> str:
+    """ "done", "partial" (an output to continue with ``--resume``) or "todo"."""
+    cmd, out = step.argv[0], _out(step)
+    if cmd == "eval":
+        return "done" if _eval_table(step).is_file() else "todo"
+    if cmd in ("report",):
+        return "done" if (out / "report.md").is_file() else "todo"
+    if cmd == "plot":
+        return "done" if (out / "curves.md").is_file() else "todo"
+    if cmd == "sweep":
+        return "done" if (out / "sweep.md").is_file() else "todo"
+    if cmd == "record":
+        n = _records(out)
+        if n >= int(step.option("--episodes", "0") or 0) > 0:
+            return "done"
+        return "partial" if out.exists() and any(out.iterdir()) else "todo"
+    if cmd in ("train", "il-train"):
+        steps = step.option("--steps")
+        final = f"agent_{steps}.pt" if cmd == "train" else f"step_{int(steps or 0):09d}.pt"
+        if steps and (out / "checkpoints" / final).is_file():
+            return "done"
+        return "partial" if (out / "checkpoints").is_dir() else "todo"
+    return "todo"
+
+
+def to_run(steps: Sequence[Step]) -> list[tuple[Step, str]]:
+    """Each step with its status; the argv of a partial step gets ``--resume``. A report or
+    plot after a step still to run is to run again: it reads that step's output."""
+    out, pending = [], False
+    for s in steps:
+        st = status(s)
+        if pending and s.argv[0] in ("report", "plot"):
+            st = "todo"
+        if st == "partial":
+            s = dataclasses.replace(s, argv=(*s.argv, "--resume"))
+        pending |= st != "done"
+        out.append((s, st))
+    return out
+
+
+def reproduce(
+    name: str,
+    preset: str = "cpu",
+    dry_run: bool = False,
+    log: Callable[[str], None] = print,
+    runner: Callable[[list[str]], int] | None = None,
+) -> int:
+    """Run (or with ``dry_run`` print) result ``name``'s commands, skipping those done;
+    returns the number of commands run. A failing command stops the reproduction with its
+    exit status (``subprocess.CalledProcessError``)."""
+    plan = to_run(recipe(name, preset))
+    total = sum(s.cpu_min for s, st in plan if st != "done")
+    log(f"{name} ({preset}): {len(plan)} commands, "
+        f"{sum(st == 'done' for _, st in plan)} done, ~{total:.0f} CPU min to go")  # fmt: skip
+    ran = 0
+    for s, st in plan:
+        cost = f"~{s.cpu_min:.0f} CPU min" if s.cpu_min else "< a few CPU min"
+        if st == "done":
+            log(f"  done     {s.command}")
+            continue
+        log(f"  {'resume' if st == 'partial' else 'run':8} {s.command}   # {cost}")
+        if dry_run:
+            continue
+        argv = [sys.executable, "-m", "sonogym.cli", *s.argv]
+        code = (runner or _run)(argv)
+        if code != 0:
+            raise subprocess.CalledProcessError(code, s.command)
+        ran += 1
+    return ran
+
+
+def _run(argv: list[str]) -> int:
+    return subprocess.run(argv, check=False).returncode

@@ -2,7 +2,7 @@
 still, unit-noise actions, backing out of or leaving the corridor, pushing along the drill
 axis. The table in docs/envs.md ("Deviation from the paper's 0 otherwise") comes from
 
-    python scripts/surgery_policy_returns.py [spacing_m=0.001] [seed=0] [w5_per_rad=5]
+    python benchmarks/surgery_policy_returns.py [spacing_m=0.001] [seed=0] [w5_per_rad=5]
 
 (w5 = 50: the weight the ``cpu`` training preset trains surgery with.)
 """

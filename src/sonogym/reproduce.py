@@ -94,77 +94,116 @@ def _surgery_state(seed: int) -> list[str]:
 _NAV_SMALL = "--envs 64 --seed 0 --net small --threads 1 --obs-downsample 4"
 _NAV_SWEEP = "--preset cpu --steps 2400 --max-concurrent 1"
 
-#: Every published result's commands, in order (docs/results.md prints the same commands).
-RECIPES: dict[str, list[str]] = {
-    "table1": [
-        *_surgery_state(0),
-        *_surgery_state(1),
-        *_surgery_state(2),
-        "sonogym train --task surgery --algo ppo-sf --obs-downsample 2 --steps 51968 --seed 0 "
-        "--out runs/surg-img-w5-s0",
-        "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50",
-        "sonogym eval --run runs/surg-img-w5-s0 --protocol odt-patient --envs 50",
-        "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50 --filter-mode zero "
-        "--name idt-zero",
-        "sonogym record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb",
-        "sonogym il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 "
-        "--out runs/il-surg-act",
-        "sonogym eval --run runs/il-surg-act --envs 50",
-        "sonogym eval --run runs/il-surg-act --protocol odt-patient --envs 50",
-        "sonogym report --task surgery --runs runs/surg-state-dist-s0 runs/surg-state-dist-s1 "
-        "runs/surg-state-dist-s2 runs/surg-img-w5-s0 runs/il-surg-act "
-        "--out docs/results/surgery-dist",
-    ],
-    "navigation": [
-        f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 9024 "
-        "--out runs/nav-ppo-small-s0",
-        f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 4512 "
-        "--protocol odt-sim --out runs/nav-ppo-small-lb-s0",
-        "sonogym eval --run runs/nav-ppo-small-s0 --protocol idt",
-        "sonogym eval --run runs/nav-ppo-small-s0 --protocol odt-patient",
-        "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol idt",
-        "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim",
-        "sonogym report --task navigation --runs runs/nav-ppo-small-s0 runs/nav-ppo-small-lb-s0 "
-        "--out docs/results/navigation",
-    ],
-    "reconstruction": [
-        "sonogym train --task reconstruction --algo ppo --envs 64 --steps 4000 --seed 0 "
-        "--net small --threads 1 --out runs/recon-ppo-small-s0",
-        "sonogym eval --run runs/recon-ppo-small-s0 --protocol idt",
-        "sonogym report --task reconstruction --runs runs/recon-ppo-small-s0 "
-        "--out docs/results/reconstruction",
-    ],
-    "population": [
-        "sonogym train --task navigation --algo ppo --preset cpu --patients 100-131 "
-        "--obs-mode us_heading --net lean --seed 0 --steps 26496 --out runs/nav-pop32-head-lean-s0",
-        "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50",
-        "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50 --protocol odt-patient "
-        "--held-out 5",
-        "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50 "
-        "--patients tests/data/totalsegmentator_example --name real-subject",
-    ],
-    "imitation": [
-        f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
-        "--out runs/sweep-nav-ppo",
-        "sonogym record --task navigation --preset mb --episodes 1000 --envs 16 "
-        "--out runs/ds-nav-mb-1000",
-        "sonogym il-train --policy act --data runs/ds-nav-mb-1000 --image-size 100x75 "
-        "--steps 128000 --threads 1 --out runs/il-nav-act-1000",
-        "sonogym il-train --policy diffusion --data runs/ds-nav-mb-1000 --image-size 100x75 "
-        "--steps 80000 --threads 1 --out runs/il-nav-dp-1000",
-        "sonogym report --task navigation --runs runs/sweep-nav-ppo/runs runs/il-nav-act-1000 "
-        "runs/il-nav-dp-1000 --out docs/results/navigation-il --no-curves",
-    ],
-    "curves": [
-        f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
-        "--out runs/sweep-nav-ppo",
-        f"sonogym sweep --task navigation --algo a2c --seeds 1 {_NAV_SWEEP} "
-        "--out runs/sweep-nav-a2c",
-        "sonogym plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs "
-        "--out docs/results/navigation-sweep --metric 'Episode / return' "
-        "--metric 'Episode / position_error_mm'",
-    ],
-}
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """A published result and the commands that make it, in order."""
+
+    name: str  # what `sonogym reproduce` takes
+    result: str  # the table or figure of docs/results.md it makes
+    commands: tuple[str, ...]
+
+
+_RECIPES = (
+    Recipe(
+        "table1",
+        "Table 1: surgery (MB rows)",
+        (
+            *_surgery_state(0),
+            *_surgery_state(1),
+            *_surgery_state(2),
+            "sonogym train --task surgery --algo ppo-sf --obs-downsample 2 --steps 51968 --seed 0 "
+            "--out runs/surg-img-w5-s0",
+            "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50",
+            "sonogym eval --run runs/surg-img-w5-s0 --protocol odt-patient --envs 50",
+            "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50 --filter-mode zero "
+            "--name idt-zero",
+            "sonogym record --task surgery --preset mb --episodes 150 --envs 16 "
+            "--out runs/ds-surg-mb",
+            "sonogym il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 "
+            "--out runs/il-surg-act",
+            "sonogym eval --run runs/il-surg-act --envs 50",
+            "sonogym eval --run runs/il-surg-act --protocol odt-patient --envs 50",
+            "sonogym report --task surgery --runs runs/surg-state-dist-s0 runs/surg-state-dist-s1 "
+            "runs/surg-state-dist-s2 runs/surg-img-w5-s0 runs/il-surg-act "
+            "--out docs/results/surgery-dist",
+        ),
+    ),
+    Recipe(
+        "navigation",
+        "Navigation bar chart",
+        (
+            f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 9024 "
+            "--out runs/nav-ppo-small-s0",
+            f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 4512 "
+            "--protocol odt-sim --out runs/nav-ppo-small-lb-s0",
+            "sonogym eval --run runs/nav-ppo-small-s0 --protocol idt",
+            "sonogym eval --run runs/nav-ppo-small-s0 --protocol odt-patient",
+            "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol idt",
+            "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim",
+            "sonogym report --task navigation --runs runs/nav-ppo-small-s0 "
+            "runs/nav-ppo-small-lb-s0 --out docs/results/navigation",
+        ),
+    ),
+    Recipe(
+        "reconstruction",
+        "Reconstruction bar chart and trajectories",
+        (
+            "sonogym train --task reconstruction --algo ppo --envs 64 --steps 4000 --seed 0 "
+            "--net small --threads 1 --out runs/recon-ppo-small-s0",
+            "sonogym eval --run runs/recon-ppo-small-s0 --protocol idt",
+            "sonogym report --task reconstruction --runs runs/recon-ppo-small-s0 "
+            "--out docs/results/reconstruction",
+        ),
+    ),
+    Recipe(
+        "population",
+        "Across a population (navigation on held-out and real patients)",
+        (
+            "sonogym train --task navigation --algo ppo --preset cpu --patients 100-131 "
+            "--obs-mode us_heading --net lean --seed 0 --steps 26496 "
+            "--out runs/nav-pop32-head-lean-s0",
+            "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50",
+            "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50 --protocol odt-patient "
+            "--held-out 5",
+            "sonogym eval --run runs/nav-pop32-head-lean-s0 --envs 50 "
+            "--patients tests/data/totalsegmentator_example --name real-subject",
+        ),
+    ),
+    Recipe(
+        "imitation",
+        "Imitation learning beside RL (navigation)",
+        (
+            f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
+            "--out runs/sweep-nav-ppo",
+            "sonogym record --task navigation --preset mb --episodes 1000 --envs 16 "
+            "--out runs/ds-nav-mb-1000",
+            "sonogym il-train --policy act --data runs/ds-nav-mb-1000 --image-size 100x75 "
+            "--steps 128000 --threads 1 --out runs/il-nav-act-1000",
+            "sonogym il-train --policy diffusion --data runs/ds-nav-mb-1000 --image-size 100x75 "
+            "--steps 80000 --threads 1 --out runs/il-nav-dp-1000",
+            "sonogym report --task navigation --runs runs/sweep-nav-ppo/runs runs/il-nav-act-1000 "
+            "runs/il-nav-dp-1000 --out docs/results/navigation-il --no-curves",
+        ),
+    ),
+    Recipe(
+        "curves",
+        "Learning curves and the seeds sweep (navigation)",
+        (
+            f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
+            "--out runs/sweep-nav-ppo",
+            f"sonogym sweep --task navigation --algo a2c --seeds 1 {_NAV_SWEEP} "
+            "--out runs/sweep-nav-a2c",
+            "sonogym plot --runs runs/sweep-nav-ppo/runs runs/sweep-nav-a2c/runs "
+            "--out docs/results/navigation-sweep --metric 'Episode / return' "
+            "--metric 'Episode / position_error_mm'",
+        ),
+    ),
+)
+
+#: Every published result's recipe by name (docs/results.md prints the same commands).
+RECIPES: dict[str, Recipe] = {r.name: r for r in _RECIPES}
+
 
 #: CPU minutes of each run when its published figure was made (docs/results.md); evaluations,
 #: reports and plots take a minute or a few.
@@ -191,7 +230,7 @@ def recipe(name: str, preset: str = "cpu") -> list[Step]:
         raise ValueError(f"no result named {name!r}; choose one of {', '.join(RECIPES)}")
     if preset not in PRESETS:
         raise ValueError(f"preset {preset!r}: choose one of {', '.join(PRESETS)}")
-    steps = _steps(RECIPES[name], CPU_MINUTES)
+    steps = _steps(RECIPES[name].commands, CPU_MINUTES)
     return steps if preset == "cpu" else [_paper(s) for s in steps]
 
 
@@ -312,7 +351,7 @@ def reproduce(
     exit status (``subprocess.CalledProcessError``)."""
     plan = to_run(recipe(name, preset))
     total = sum(s.cpu_min for s, st in plan if st != "done")
-    log(f"{name} ({preset}): {len(plan)} commands, "
+    log(f"{name}, {RECIPES[name].result} ({preset} preset): {len(plan)} commands, "
         f"{sum(st == 'done' for _, st in plan)} done, ~{total:.0f} CPU min to go")  # fmt: skip
     ran = 0
     for s, st in plan:

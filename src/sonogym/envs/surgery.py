@@ -109,16 +109,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import ClassVar, Literal, get_args
 
 import numpy as np
 import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.footprint import check_env_fits
-from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     CONV3,
     SMALL_CONV3,
@@ -142,7 +142,6 @@ from sonogym.geometry import (
     matrix_from_axis_angle,
     quat_from_matrix,
 )
-from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 ObsMode = Literal["us", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
@@ -157,21 +156,13 @@ _START_REDRAWS = 20
 
 
 @dataclass(frozen=True)
-class SurgeryConfig:
+class SurgeryConfig(SceneConfig):
     """Surgery task settings (paper defaults). Every field is a ``make_vec`` keyword."""
 
-    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
-    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: SimulatorName = "physical"
-    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
-    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
-    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
-    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
+    obs_modes: ClassVar[tuple[str, ...]] = OBS_MODES
+
     obs_mode: ObsMode = "us"
-    device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
-    target_vertebra: str = "L4"
     side: Side = "right"  # drilled pedicle, the patient's side
     skin_distance: float = 0.05  # m, l: p_l = [0, 0, -l] in {G} (appendix: 50 mm)
     corridor_margin: float = 0.002  # m, d = 2 (r + corridor_margin)
@@ -199,16 +190,9 @@ class SurgeryConfig:
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
-        check_number_fields(self)
-        object.__setattr__(
-            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
-        )
-        if self.obs_mode not in OBS_MODES:
-            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
+        super().__post_init__()
         if self.side not in SIDES:
             raise ValueError(f"side {self.side!r} is not one of {SIDES}")
-        if self.episode_length < 1:
-            raise ValueError("episode_length must be >= 1")
         if len(self.joint_noise) != 7 or any(v < 0 for v in self.joint_noise):
             raise ValueError(f"joint_noise needs 7 values >= 0 (rad), got {self.joint_noise}")
         for name in ("action_scale", "action_limit"):
@@ -228,10 +212,6 @@ class SurgeryConfig:
                 "unsafe_distance_penalty (per m) and unsafe_distance_cap (m) must be >= 0, got "
                 f"{self.unsafe_distance_penalty}, {self.unsafe_distance_cap}"
             )
-        if isinstance(self.patients, int | str):
-            object.__setattr__(self, "patients", (self.patients,))
-        object.__setattr__(self, "patients", tuple(self.patients))
-        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
 
 # ----------------------------------------------------------------------------- pure functions

@@ -128,6 +128,7 @@ from sonogym.envs.spec import (
     Demo,
     EnvMemory,
     Feature,
+    LearningParams,
     Metric,
     PPOParams,
     SafetyParams,
@@ -651,25 +652,27 @@ SPEC = TaskSpec(
         timesteps=200_000,
         trunks={"paper": CONV3, "small": SMALL_CONV3},
         image_height=50,
-        # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
-        # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
-        init_log_std=math.log(0.05),
-        # ... narrowing to 0.005 (~0.5 mm per command) over 100 k steps: at a constant ~0.035
-        # the state policy kept ~8 mm above the target, which lies on C_drill's boundary
-        final_log_std=math.log(0.005),
-        anneal_steps=100_000,
-        init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
-        # the policy mean stays inside the action box (networks.squash_into_box): with sigma
-        # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
-        bounded_mean=True,
-        # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
-        stagger_episodes=True,
-        # mean_bound_penalty stays 0: bounded_mean keeps the means in the box already, and the
-        # penalty alone did not keep seeds from collapsing (networks.SharedActorCritic)
-        standardize_vectors=True,  # poses in metres: mm differences at order 1
-        # ... with statistics frozen after 30 k steps: drifting statistics under a learning
-        # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
-        standardize_steps=30_000,
+        learning=LearningParams(
+            # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
+            # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
+            init_log_std=math.log(0.05),
+            # ... narrowing to 0.005 (~0.5 mm per command) over 100 k steps: at a constant ~0.035
+            # the state policy kept ~8 mm above the target, which lies on C_drill's boundary
+            final_log_std=math.log(0.005),
+            anneal_steps=100_000,
+            init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
+            # the policy mean stays inside the action box (networks.squash_into_box): with sigma
+            # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
+            bounded_mean=True,
+            # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
+            stagger_episodes=True,
+            # mean_bound_penalty stays 0: bounded_mean keeps the means in the box already, and the
+            # penalty alone did not keep seeds from collapsing (networks.SharedActorCritic)
+            standardize_vectors=True,  # poses in metres: mm differences at order 1
+            # ... with statistics frozen after 30 k steps: drifting statistics under a learning
+            # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
+            standardize_steps=30_000,
+        ),
         # measured on 2 CPU cores (obs_mode="state", 64 envs): the paper's table (16 rollouts,
         # 32 mini-batches of 32, 3 epochs, lr 1e-4) had reached only p_l after 0.33 M env steps
         ppo_cpu=PPOParams(

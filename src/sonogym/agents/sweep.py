@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from sonogym.agents.configs import TrainConfig, resolve_train_config
+from sonogym.envs.options import parse_value
 from sonogym.runs import (
     atomic_write_json,
     atomic_write_text,
@@ -312,14 +313,3 @@ def _write_table(out: Path, rows: list[TrialRow]) -> None:
         if r.error:
             md.append(f"\n{r.name} failed: {r.error}")
     atomic_write_text(out / "sweep.md", "\n".join(md) + "\n")
-
-
-def parse_value(text: str) -> Any:
-    """A grid or ``--env-option`` value: int, float, true/false/none, else the text."""
-    text = text.strip()
-    for conv in (int, float):
-        try:
-            return conv(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False, "none": None}.get(text.lower(), text)

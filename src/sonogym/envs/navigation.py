@@ -59,7 +59,7 @@ from sonogym.envs.spec import (
     CONV4,
     SMALL_CONV4,
     A2CParams,
-    DatasetPreset,
+    DatasetRecipe,
     DatasetSpec,
     Demo,
     EnvMemory,
@@ -309,10 +309,10 @@ SPEC = TaskSpec(
         instruction="Navigate the ultrasound probe to the transverse view above L4.",
         robot_type="kuka_med14",
         fps=60,  # the reference's control rate
-        presets=(  # the paper's appendix Table "Number of episodes for expert datasets"
-            DatasetPreset("mb", 2052, {"simulator": "physical", "patients": (0,)}),
-            DatasetPreset("lb", 1869, {"simulator": "learned", "learned_nets": (0,)}),
-            DatasetPreset("lb-4-nets", 954, {"simulator": "learned", "learned_nets": (0, 1, 2, 3)}),
+        recipes=(  # the paper's appendix Table "Number of episodes for expert datasets"
+            DatasetRecipe("mb", 2052, {"simulator": "physical", "patients": (0,)}),
+            DatasetRecipe("lb", 1869, {"simulator": "learned", "learned_nets": (0,)}),
+            DatasetRecipe("lb-4-nets", 954, {"simulator": "learned", "learned_nets": (0, 1, 2, 3)}),
         ),
         success=lambda m: (m["position_error_mm"] < 5.0) & (m["angle_error_deg"] < 5.0),
     ),

@@ -82,9 +82,10 @@ class Feature:
 
 
 @dataclass(frozen=True)
-class DatasetPreset:
-    """One expert-dataset setting of the paper: its name, default episode count and the env
-    options it records with (simulator, nets, patients, start randomisation)."""
+class DatasetRecipe:
+    """How one of the paper's expert datasets is recorded: its name (``sonogym record
+    --recipe``), default episode count and the env options it records with (simulator, nets,
+    patients, start randomisation)."""
 
     name: str
     episodes: int
@@ -104,15 +105,15 @@ class DatasetSpec:
     instruction: str
     robot_type: str
     fps: int
-    presets: tuple[DatasetPreset, ...]
+    recipes: tuple[DatasetRecipe, ...]
     success: Callable[[dict[str, torch.Tensor]], torch.Tensor]
 
-    def preset(self, name: str) -> DatasetPreset:
-        for p in self.presets:
-            if p.name == name:
-                return p
+    def recipe(self, name: str) -> DatasetRecipe:
+        for r in self.recipes:
+            if r.name == name:
+                return r
         raise ValueError(
-            f"unknown dataset preset {name!r}; choose from {[p.name for p in self.presets]}"
+            f"unknown dataset recipe {name!r}; choose from {[r.name for r in self.recipes]}"
         )
 
 

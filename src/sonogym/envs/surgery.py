@@ -123,7 +123,7 @@ from sonogym.envs.spec import (
     CONV3,
     SMALL_CONV3,
     A2CParams,
-    DatasetPreset,
+    DatasetRecipe,
     DatasetSpec,
     Demo,
     EnvMemory,
@@ -699,8 +699,8 @@ SPEC = TaskSpec(
         robot_type="kuka_med14+franka_fr3",
         fps=60,  # the reference's control rate
         # the paper's appendix: wider initial joints, starts that may be unsafe
-        presets=tuple(
-            DatasetPreset(name, n, {**kw, **_DATA_COLLECTION_STARTS})
+        recipes=tuple(
+            DatasetRecipe(name, n, {**kw, **_DATA_COLLECTION_STARTS})
             for name, n, kw in (
                 ("mb", 3536, {"simulator": "physical", "patients": (0,)}),
                 ("mb-5-patients", 1476, {"simulator": "physical", "patients": (0, 1, 2, 3, 4)}),

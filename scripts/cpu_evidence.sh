@@ -74,7 +74,7 @@ $S eval --run runs/nav-pop32-head-lean-s0 --envs 50 --protocol odt-patient --hel
 $S eval --run runs/nav-pop32-head-lean-s0 --envs 50 --patients tests/data/totalsegmentator_example \
     --name real-subject
 # Imitation learning: expert datasets, ACT and Diffusion Policy (navigation at 100 x 75).
-$S record --task navigation --preset mb --episodes 200 --envs 16 --out runs/ds-nav-mb
+$S record --task navigation --recipe mb --episodes 200 --envs 16 --out runs/ds-nav-mb
 $S il-train --policy act --data runs/ds-nav-mb --image-size 100x75 --steps 75000 --threads 1 \
     --out runs/il-nav-act
 # ... continued to 90 min of training in all (constant learning rate, so a resume is exact).
@@ -83,12 +83,12 @@ $S il-train --policy act --data runs/ds-nav-mb --out runs/il-nav-act --resume --
 $S il-train --policy diffusion --data runs/ds-nav-mb --image-size 100x75 --steps 32000 \
     --threads 1 --out runs/il-nav-dp
 # ... and on 1,000 episodes (the runs that meet the navigation targets), <= 90 CPU min each.
-$S record --task navigation --preset mb --episodes 1000 --envs 16 --out runs/ds-nav-mb-1000
+$S record --task navigation --recipe mb --episodes 1000 --envs 16 --out runs/ds-nav-mb-1000
 $S il-train --policy act --data runs/ds-nav-mb-1000 --image-size 100x75 --steps 128000 \
     --threads 1 --out runs/il-nav-act-1000
 $S il-train --policy diffusion --data runs/ds-nav-mb-1000 --image-size 100x75 --steps 80000 \
     --threads 1 --out runs/il-nav-dp-1000
-$S record --task surgery --preset mb --episodes 150 --envs 16 --out runs/ds-surg-mb
+$S record --task surgery --recipe mb --episodes 150 --envs 16 --out runs/ds-surg-mb
 $S il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 --out runs/il-surg-act
 # Seeds on Ray Tune: PPO navigation x 3 seeds and one A2C seed.
 $S sweep --task navigation --algo ppo --seeds 3 --preset cpu --steps 2400 --max-concurrent 1 \

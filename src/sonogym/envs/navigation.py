@@ -143,7 +143,6 @@ class NavigationEnv(TorchVectorEnv):
             cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False
         )
         n = num_envs
-        dt = torch.float32
         # Goal command per env: above the target vertebra's body centroid, transverse.
         centres = self.scene.target_centres  # (N, 3)
         self.goal_cmd = torch.stack(
@@ -151,12 +150,7 @@ class NavigationEnv(TorchVectorEnv):
         )
         self.goal_pos, self.goal_rot = self.scene.surface_pose(self.goal_cmd)
         self.command = self.goal_cmd.clone()
-        self.action_scale = torch.tensor(cfg.action_scale, dtype=dt, device=self.device)
-        self.action_limit = torch.tensor(cfg.action_limit, dtype=dt, device=self.device)
-        bound = float(
-            max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
-        )
-        self.action_bound = bound
+        self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         unit_image = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
         obs_space = {
             "us": unit_image,
@@ -175,12 +169,8 @@ class NavigationEnv(TorchVectorEnv):
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:
-        cfg, k = self.cfg, len(env_ids)
-        h = cfg.start_half_extent
-        cmd = self.goal_cmd[env_ids].clone()
-        cmd[:, 0] += self.uniform(-h, h, k).float()
-        cmd[:, 1] += self.uniform(-h, h, k).float()
-        cmd[:, 2] = self.uniform(cfg.start_yaw[0], cfg.start_yaw[1], k).float()
+        cfg = self.cfg
+        cmd = self.draw_surface_starts(env_ids, self.goal_cmd, cfg.start_half_extent, cfg.start_yaw)
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)
         self._state[env_ids] = self._measure(env_ids)

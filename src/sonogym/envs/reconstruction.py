@@ -284,13 +284,7 @@ class ReconstructionEnv(TorchVectorEnv):
             np.stack([f.rotation for f in frames]), dtype=torch.float32, device=dev
         )[pid]
         self.command = self.goal_cmd.clone()
-        dt = torch.float32
-        self.action_scale = torch.tensor(cfg.action_scale, dtype=dt, device=dev)
-        self.action_limit = torch.tensor(cfg.action_limit, dtype=dt, device=dev)
-        bound = float(
-            max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
-        )
-        self.action_bound = bound
+        self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         if cfg.obs_mode == "reconstruction":
             obs_space = spaces.Dict(
                 {
@@ -325,12 +319,8 @@ class ReconstructionEnv(TorchVectorEnv):
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:
-        cfg, k = self.cfg, len(env_ids)
-        h = cfg.start_half_extent
-        cmd = self.goal_cmd[env_ids].clone()
-        cmd[:, 0] += self.uniform(-h, h, k).float()
-        cmd[:, 1] += self.uniform(-h, h, k).float()
-        cmd[:, 2] = self.uniform(cfg.start_yaw[0], cfg.start_yaw[1], k).float()
+        cfg = self.cfg
+        cmd = self.draw_surface_starts(env_ids, self.goal_cmd, cfg.start_half_extent, cfg.start_yaw)
         cmd[:, 3] = 0.0
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)

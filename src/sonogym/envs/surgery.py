@@ -418,8 +418,7 @@ class SurgeryEnv(TorchVectorEnv):
         n, dev = num_envs, self.device
         f32 = dict(dtype=torch.float32, device=dev)
         self.half_width = self.scene.radius + cfg.corridor_margin  # (N,) d/2, m
-        self.action_scale = torch.tensor(cfg.action_scale, **f32)
-        self.action_limit = torch.tensor(cfg.action_limit, **f32)
+        self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         self.joint_noise = torch.tensor(cfg.joint_noise, **f32)
         bound = (self.action_limit / self.action_scale).cpu().numpy()
         img_shape = self.scene.image_shape

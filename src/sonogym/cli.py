@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import re
+import functools
+import inspect
+import typing
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+
+from sonogym.agents.options import RunOptions
 
 app = typer.Typer(
     help="SonoGym: robotic-ultrasound simulation on plain PyTorch.",
@@ -20,6 +26,55 @@ app = typer.Typer(
 @app.callback()
 def _root() -> None:
     """SonoGym: robotic-ultrasound simulation on plain PyTorch."""
+
+
+#: The ``options`` parameter's placeholder default (``with_options`` replaces it by the flags).
+ALL_DEFAULTS = RunOptions()
+
+
+def with_options(cls: type) -> Callable[[Callable], Callable]:
+    """Command decorator: the command's ``options`` parameter becomes one flag per field of
+    the dataclass ``cls`` (the field's ``help`` metadata is the flag's help text), and the
+    command receives them back as one ``cls``. Commands that share ``cls`` share the flags."""
+    hints = typing.get_type_hints(cls)
+    fields = dataclasses.fields(cls)
+    flags = [
+        inspect.Parameter(
+            f.name,
+            inspect.Parameter.POSITIONAL_OR_KEYWORD,
+            default=f.default,
+            annotation=Annotated[hints[f.name], typer.Option(help=f.metadata["help"])],
+        )
+        for f in fields
+    ]
+
+    def decorate(command: Callable) -> Callable:
+        sig = inspect.signature(command, eval_str=True)
+        params: list[inspect.Parameter] = []
+        for p in sig.parameters.values():
+            params.extend(flags if p.name == "options" else [p])
+
+        @functools.wraps(command)
+        def run(**kwargs: Any) -> Any:
+            options = cls(**{f.name: kwargs.pop(f.name) for f in fields})
+            return command(options=options, **kwargs)
+
+        run.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
+        run.__annotations__ = {p.name: p.annotation for p in params}
+        return run
+
+    return decorate
+
+
+def _deprecated(command: str, old: str, new: str, old_value: Any, value: Any) -> Any:
+    """The value of option ``new`` where the user gave its former name ``old`` (said on
+    stderr); both given with different values is refused."""
+    if old_value is None:
+        return value
+    typer.echo(f"sonogym {command}: {old} is deprecated, use {new}", err=True)
+    if value is not None and value != old_value:
+        raise typer.BadParameter(f"{old} (deprecated) and {new} differ: give {new} only")
+    return old_value
 
 
 @app.command()
@@ -72,7 +127,10 @@ def image(
             "Repeatable. Default: above L4, transverse and sagittal."
         ),
     ] = None,
-    preset: Annotated[str, typer.Option(help="physical, sonogym or both.")] = "physical",
+    us_model: Annotated[
+        str | None,
+        typer.Option(help="Model-based ultrasound model: physical (default), sonogym or both."),
+    ] = None,
     sheet: Annotated[
         bool, typer.Option(help="One sheet: CT slice | label slice | US per pose.")
     ] = False,
@@ -81,10 +139,12 @@ def image(
         float, typer.Option(help="Voxel size in mm for the phantom / patient.")
     ] = 1.0,
     out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/image"),
+    preset: Annotated[str | None, typer.Option(hidden=True, help="Deprecated: --us-model.")] = None,
 ) -> None:
     """Render ultrasound images at surface poses of a phantom or a patient folder, to PNG."""
     from sonogym.viz.render import parse_pose, render_command
 
+    us_model = _deprecated("image", "--preset", "--us-model", preset, us_model) or "physical"
     if seed is not None and patient is not None:
         raise typer.BadParameter("give --seed or --patient, not both")
     try:
@@ -99,9 +159,11 @@ def image(
         from sonogym.anatomy import PhantomParams, load_phantom
 
         subject = load_phantom(seed or 0, PhantomParams(spacing=spacing * 1e-3))
-    if preset not in ("physical", "sonogym", "both"):
-        raise typer.BadParameter(f"unknown preset {preset!r}; use physical, sonogym or both")
-    for path in render_command(subject, poses, preset, sheet, probe, out):
+    if us_model not in ("physical", "sonogym", "both"):
+        raise typer.BadParameter(
+            f"unknown ultrasound model {us_model!r}; use physical, sonogym or both"
+        )
+    for path in render_command(subject, poses, us_model, sheet, probe, out):
         typer.echo(f"wrote {path}")
 
 
@@ -134,56 +196,16 @@ def demo(
 
 
 @app.command()
+@with_options(RunOptions)
 def train(
     task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
     algo: Annotated[
         str, typer.Option(help="ppo, a2c (all tasks); ppo-sf, ppo-lag (surgery).")
     ] = "ppo",
-    preset: Annotated[
-        str | None,
-        typer.Option(
-            help="Device preset for envs, network size, image downsampling and threads: auto "
-            "(default: paper on CUDA, cpu otherwise), cpu or paper."
-        ),
-    ] = None,
-    envs: Annotated[int | None, typer.Option(help="Parallel envs (default: the preset's).")] = None,
-    steps: Annotated[
-        int | None, typer.Option(help="Env steps per env in total (default: the paper's).")
-    ] = None,
     seed: Annotated[
         int | None, typer.Option(help="Seed of torch and the envs (default 0).")
     ] = None,
-    patients: Annotated[
-        list[str] | None,
-        typer.Option(
-            help="Phantom seed, seed range A-B (inclusive) or TotalSegmentator folder; "
-            "repeatable (default 0)."
-        ),
-    ] = None,
-    simulator: Annotated[
-        str | None, typer.Option(help="Ultrasound simulator: physical, sonogym or learned.")
-    ] = None,
-    learned_nets: Annotated[
-        str | None,
-        typer.Option(
-            help="With --simulator learned: comma-separated shipped net indices (0-4) and/or "
-            "generator.pt paths, e.g. 0,1,2,3 (default: all five)."
-        ),
-    ] = None,
-    obs_downsample: Annotated[
-        int | None, typer.Option(help="Average-pool image observations by this factor.")
-    ] = None,
-    obs_mode: Annotated[
-        str | None,
-        typer.Option(
-            help="Observation: the task's default (images), or 'state' (the privileged state), "
-            "'ct' / 'labels' (navigation, surgery), 'us_heading' (navigation: image + the "
-            "probe's yaw)."
-        ),
-    ] = None,
-    phantom_spacing: Annotated[
-        float | None, typer.Option(help="Phantom voxel size in mm (default 1).")
-    ] = None,
+    options: RunOptions = ALL_DEFAULTS,
     env_option: Annotated[
         list[str] | None,
         typer.Option(
@@ -191,17 +213,6 @@ def train(
             "e.g. unsafe_penalty=0.5; repeatable. Overrides the preset's env options."
         ),
     ] = None,
-    net: Annotated[
-        str | None,
-        typer.Option(
-            help="Network size: paper, small or lean (small convs, [256, 128, 64] ReLU trunk; "
-            "surgery state runs on a CPU). Default: the preset's."
-        ),
-    ] = None,
-    threads: Annotated[
-        int | None, typer.Option(help="torch CPU threads (default: the preset's).")
-    ] = None,
-    device: Annotated[str | None, typer.Option(help="cpu or cuda[:i] (default cpu).")] = None,
     out: Annotated[
         Path | None, typer.Option(help="Run directory (default runs/<task>-<algo>-s<seed>).")
     ] = None,
@@ -225,47 +236,21 @@ def train(
     Settings resolve from the task's defaults, then the device preset, then these options."""
     from sonogym.agents.train import train as run_train
     from sonogym.envs.registry import check_algo
+    from sonogym.evaluation.protocols import protocol_env_kwargs
 
-    try:
+    with _bad_parameter():
         check_algo(task, algo)
-    except ValueError as e:
-        raise typer.BadParameter(str(e)) from None
-    _check_positive(("--steps", steps), ("--envs", envs), ("--obs-downsample", obs_downsample),
-                    ("--threads", threads), ("--checkpoint-every", checkpoint_every))  # fmt: skip
-    from sonogym.agents.presets import PRESETS
-
-    if preset is not None and preset not in PRESETS:
-        raise typer.BadParameter(f"unknown preset {preset!r}; choose from {list(PRESETS)}")
-    pats = parse_patients(patients)
-    env_kwargs = parse_env_options(task, env_option)
-    if phantom_spacing is not None:
-        env_kwargs["phantom_spacing"] = phantom_spacing * 1e-3
-    if obs_mode is not None:
-        env_kwargs["obs_mode"] = obs_mode
-    if learned_nets:
-        env_kwargs["learned_nets"] = tuple(
-            int(v) if v.strip().isdigit() else v.strip() for v in learned_nets.split(",")
-        )
-    if protocol is not None:
-        from sonogym.evaluation.protocols import protocol_train_kwargs
-
-        try:
-            env_kwargs.update(
-                protocol_train_kwargs(
-                    protocol,
-                    patients=pats,
-                    simulator=simulator,
-                    learned_nets=env_kwargs.get("learned_nets"),
-                )
-            )
-        except ValueError as e:
-            raise typer.BadParameter(str(e)) from None
-        pats, simulator = None, None
+        options.check()
+        _check_positive(("--checkpoint-every", checkpoint_every))
+        pats, simulator = options.patient_specs(), options.simulator
+        env_kwargs = {**parse_env_options(task, env_option), **options.scene_kwargs()}
+        if protocol is not None:
+            env_kwargs = protocol_env_kwargs(protocol, env_kwargs, pats, simulator)
+            pats, simulator = None, None
     res = run_train(
-        task, algo, envs=envs, steps=steps, seed=seed, out=out, patients=pats,
-        simulator=simulator, obs_downsample=obs_downsample, net=net, env_kwargs=env_kwargs,
-        preset=preset, threads=threads, device=device, resume=resume, force=force, log=typer.echo,
-        checkpoint_interval=checkpoint_every,
+        task, algo, seed=seed, out=out, patients=pats, simulator=simulator,
+        env_kwargs=env_kwargs, resume=resume, force=force, log=typer.echo,
+        checkpoint_interval=checkpoint_every, **options.train_kwargs(),
     )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 
@@ -274,19 +259,19 @@ def train(
 def record(
     task: Annotated[str, typer.Option(help="navigation or surgery.")],
     out: Annotated[Path, typer.Option(help="Dataset folder (LeRobotDataset v3.0).")],
-    preset: Annotated[
+    recipe: Annotated[
         str | None,
         typer.Option(
-            help="The paper's dataset setting: navigation mb / lb / lb-4-nets; surgery mb / "
+            help="The paper's dataset recipe: navigation mb / lb / lb-4-nets; surgery mb / "
             "mb-5-patients / lb / lb-4-nets (simulator, nets, patients, starts, episodes)."
         ),
     ] = None,
     episodes: Annotated[
-        int | None, typer.Option(help="Episodes to write (default: the preset's, else 100).")
+        int | None, typer.Option(help="Episodes to write (default: the recipe's, else 100).")
     ] = None,
     envs: Annotated[int | None, typer.Option(help="Parallel envs (default 16).")] = None,
     simulator: Annotated[
-        str | None, typer.Option(help="physical, sonogym or learned (overrides the preset).")
+        str | None, typer.Option(help="physical, sonogym or learned (overrides the recipe).")
     ] = None,
     learned_nets: Annotated[
         str | None, typer.Option(help="Comma-separated shipped net indices or generator.pt paths.")
@@ -298,14 +283,19 @@ def record(
     seed: Annotated[int | None, typer.Option(help="Seed of the first batch (default 0).")] = None,
     resume: Annotated[bool, typer.Option(help="Continue an interrupted recording.")] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing dataset in --out.")] = False,
+    preset: Annotated[str | None, typer.Option(hidden=True, help="Deprecated: --recipe.")] = None,
 ) -> None:
     """Record the task's expert into a LeRobotDataset v3.0 folder (PNG frames in parquet),
     for imitation learning (sonogym il-train) and for LeRobot itself."""
     from sonogym.imitation.record import record as run_record
 
+    recipe = _deprecated("record", "--preset", "--recipe", preset, recipe)
     _check_positive(("--episodes", episodes), ("--envs", envs))
-    kw = _env_options(simulator, learned_nets, patients, phantom_spacing)
-    run_record(task, out, episodes=episodes, preset=preset, envs=envs, env_kwargs=kw or None,
+    scene = RunOptions(simulator=simulator, learned_nets=learned_nets, patients=patients,
+                       phantom_spacing=phantom_spacing)  # fmt: skip
+    with _bad_parameter():
+        kw = scene.env_kwargs()
+    run_record(task, out, episodes=episodes, recipe=recipe, envs=envs, env_kwargs=kw or None,
                seed=seed, resume=resume, force=force, log=typer.echo)  # fmt: skip
 
 
@@ -322,7 +312,7 @@ def il_train(
     data: Annotated[Path, typer.Option(help="Dataset folder (sonogym record).")],
     out: Annotated[Path, typer.Option(help="Run folder (checkpoints, config.json, tb/).")],
     steps: Annotated[int | None, typer.Option(help="Optimiser steps in total.")] = None,
-    preset: Annotated[
+    size: Annotated[
         str | None,
         typer.Option(help="Policy size: cpu (default, documented) or paper (LeRobot's)."),
     ] = None,
@@ -351,14 +341,15 @@ def il_train(
             "resumes from at most this far back; each replaces the previous such one."
         ),
     ] = 5.0,
+    preset: Annotated[str | None, typer.Option(hidden=True, help="Deprecated: --size.")] = None,
 ) -> None:
     """Train an imitation-learning policy (ACT, Diffusion Policy, ...) on an expert dataset;
     evaluate with sonogym eval --run."""
     from sonogym.agents.presets import cpu_threads
-    from sonogym.imitation.policies.registry import get_policy, make_config
     from sonogym.imitation.run import read_run_config
-    from sonogym.imitation.train import ILTrainConfig, train_il
+    from sonogym.imitation.train import ILTrainConfig, il_train_settings, train_il
 
+    size = _deprecated("il-train", "--preset", "--size", preset, size)
     _check_positive(("--steps", steps), ("--batch-size", batch_size),
                     ("--checkpoint-every", checkpoint_every))  # fmt: skip
     if not checkpoint_minutes >= 0:
@@ -366,37 +357,17 @@ def il_train(
             f"--checkpoint-minutes must be >= 0 (0: none), got {checkpoint_minutes}"
         )
     old = read_run_config(out) if resume and (out / "config.json").is_file() else None
-    if old is not None:  # what is left out continues as the run was trained
-        seed = old["seed"] if seed is None else seed
-        batch_size = old["train"]["batch_size"] if batch_size is None else batch_size
-        steps = old["train"]["steps"] if steps is None else steps
-    preset_given = preset is not None
-    preset = preset or "cpu"
-    overrides = {}
-    if image_size is not None:
-        h, sep, w = image_size.lower().partition("x")
-        if not (sep and h.isdigit() and w.isdigit() and int(h) > 0 and int(w) > 0):
-            raise typer.BadParameter(
-                f"--image-size takes HxW in pixels, e.g. 100x75; got {image_size!r}"
-            )
-        overrides["image_size"] = (int(h), int(w))
-    try:
-        if old is not None and not (overrides or preset_given) and old["policy"] == policy:
-            policy_config = get_policy(policy).config_cls.from_dict(old["policy_config"])
-        else:
-            policy_config = make_config(policy, preset, **overrides) if overrides else None
-    except ValueError as e:
-        raise typer.BadParameter(str(e)) from None
+    with _bad_parameter():  # what is left out of a resumed run continues as it was trained
+        settings = il_train_settings(policy, old, size=size, image_size=image_size, steps=steps,
+                                     batch_size=batch_size, seed=seed)  # fmt: skip
     import torch
 
     torch.set_num_threads(
         threads or (cpu_threads() if device == "cpu" else torch.get_num_threads())
     )
-    cfg = ILTrainConfig(data=str(data), out=str(out), policy=policy, preset=preset,
-                        policy_config=policy_config, steps=steps or 10_000,
-                        batch_size=batch_size or 8, seed=1000 if seed is None else seed,
-                        device=device, resume=resume, force=force, save_every=checkpoint_every,
-                        save_minutes=checkpoint_minutes)  # fmt: skip
+    cfg = ILTrainConfig(data=str(data), out=str(out), device=device, resume=resume, force=force,
+                        save_every=checkpoint_every, save_minutes=checkpoint_minutes,
+                        **settings)  # fmt: skip
     res = train_il(cfg)
     typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
                f"evaluate with: sonogym eval --run {out}")  # fmt: skip
@@ -408,6 +379,16 @@ def _check_positive(*options: tuple[str, int | None]) -> None:
     for name, v in options:
         if v is not None and v < 1:
             raise typer.BadParameter(f"{name} must be a positive integer, got {v}")
+
+
+@contextlib.contextmanager
+def _bad_parameter() -> Iterator[None]:
+    """A ``ValueError`` raised inside (an option's text or value refused by the library)
+    becomes typer's usage error with the same message."""
+    try:
+        yield
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
 
 
 #: Env options with their own ``train`` flag (units or parsing of their own there).
@@ -422,95 +403,26 @@ _FLAGGED_ENV_OPTIONS = {
 
 
 def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
-    """``--env-option KEY=VALUE`` items -> env keyword arguments; values read as int, float,
-    true/false/none or text (as ``sonogym sweep``'s grid), comma-separated for an option whose
-    default is a tuple. Names an unknown option, a malformed item, a repeated key, a non-number
-    for a numeric option, an option that has its own flag, and whatever the task's config
-    refuses (NaN, inf or 1e309 for a number, 2.5 for an integer option: 2.0 is taken as 2)."""
-    from sonogym.agents.sweep import parse_value
-    from sonogym.envs.registry import get_task
+    """``--env-option KEY=VALUE`` items -> env keyword arguments
+    (``sonogym.envs.options.parse_env_options``; the options with a flag of their own are
+    refused, naming the flag)."""
+    from sonogym.envs import options
 
-    config_cls = get_task(task).config_cls
-    fields = sorted(f.name for f in dataclasses.fields(config_cls))
-    defaults = config_cls()
-    out: dict[str, Any] = {}
-    given: dict[str, str] = {}  # the text as typed, for the messages
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        given[key] = value.strip()
-        if not sep or not key or not value.strip():
-            raise typer.BadParameter(f"--env-option {item!r}: write KEY=VALUE, e.g. w5=50")
-        if key in _FLAGGED_ENV_OPTIONS:
-            raise typer.BadParameter(
-                f"--env-option {key}: use {_FLAGGED_ENV_OPTIONS[key]} for this option"
-            )
-        if key not in fields:
-            raise typer.BadParameter(
-                f"--env-option {key}: {task} has no such option; its options are {fields}"
-            )
-        if key in out:
-            raise typer.BadParameter(f"--env-option {key} is given twice")
-        default = getattr(defaults, key)
-        if isinstance(default, tuple):  # e.g. action_scale=0.003,0.003,0.1
-            out[key] = tuple(parse_value(v) for v in value.split(","))
-            continue
-        out[key] = parse_value(value)
-        number = (int, float)
-        if isinstance(default, number) and not isinstance(out[key], number):
-            raise typer.BadParameter(
-                f"--env-option {key}={value}: expected a number (default {default!r})"
-            )
-    for key, value in out.items():  # the config's own checks (finite numbers, integers, ranges)
-        try:
-            out[key] = getattr(config_cls(**{key: value}), key)  # 2.0 for an integer: 2
-        except (TypeError, ValueError) as e:
-            raise typer.BadParameter(f"--env-option {key}={given[key]}: {e}") from None
-    try:
-        config_cls(**out)
-    except (TypeError, ValueError) as e:
-        raise typer.BadParameter(f"--env-option: {e}") from None
-    return out
+    with _bad_parameter():
+        return options.parse_env_options(task, items, _FLAGGED_ENV_OPTIONS)
 
 
 def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
-    """Patients from the command line: an integer is a phantom seed, ``A-B`` (digits, A <= B)
-    the seeds A..B inclusive, ``DIR@N`` variant N of the subject in folder DIR and ``DIR@A-B``
-    its variants A..B (unless that is itself an existing path), anything else a subject folder;
-    None when none were given."""
-    if not specs:
-        return None
-    out: list[int | str] = []
-    for p in specs:
-        m = re.fullmatch(r"(\d+)-(\d+)", p.strip())
-        v = None if Path(p).exists() else re.fullmatch(r"(.+)@(\d+)-(\d+)", p.strip())
-        if m or v:
-            lo, hi = (int(m.group(1)), int(m.group(2))) if m else (int(v[2]), int(v[3]))
-            if lo > hi:
-                raise typer.BadParameter(f"patient range {p!r}: {lo} > {hi}; write it low-high")
-            out.extend(range(lo, hi + 1) if m else (f"{v[1]}@{i}" for i in range(lo, hi + 1)))
-        else:
-            out.append(int(p) if p.lstrip("-").isdigit() else p)
-    return tuple(out)
+    """``--patients`` / ``--patient`` values -> the env's ``patients``
+    (``sonogym.envs.options.parse_patients``); None when none were given."""
+    from sonogym.envs import options
 
-
-def _env_options(simulator, learned_nets, patients, phantom_spacing) -> dict:
-    """Env options from the shared command-line flags (only those given)."""
-    kw: dict = {}
-    if simulator is not None:
-        kw["simulator"] = simulator
-    if learned_nets:
-        kw["learned_nets"] = tuple(
-            int(v) if v.strip().isdigit() else v.strip() for v in learned_nets.split(",")
-        )
-    if patients:
-        kw["patients"] = parse_patients(patients)
-    if phantom_spacing is not None:
-        kw["phantom_spacing"] = phantom_spacing * 1e-3
-    return kw
+    with _bad_parameter():
+        return options.parse_patients(specs)
 
 
 @app.command()
+@with_options(RunOptions)
 def sweep(
     task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
     out: Annotated[Path, typer.Option(help="Sweep folder (sweep.md/csv, runs/, tune/, plots/).")],
@@ -536,58 +448,35 @@ def sweep(
     ] = None,
     resume: Annotated[bool, typer.Option(help="Continue an interrupted sweep in --out.")] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing sweep in --out.")] = False,
-    preset: Annotated[str | None, typer.Option(help="auto, cpu or paper (every trial).")] = None,
-    envs: Annotated[int | None, typer.Option(help="Parallel envs per trial.")] = None,
-    steps: Annotated[int | None, typer.Option(help="Env steps per env per trial.")] = None,
-    net: Annotated[str | None, typer.Option(help="Network size: paper, small or lean.")] = None,
-    obs_downsample: Annotated[int | None, typer.Option(help="Image pooling factor.")] = None,
-    obs_mode: Annotated[str | None, typer.Option(help="Observation mode (e.g. state).")] = None,
-    simulator: Annotated[str | None, typer.Option(help="physical, sonogym or learned.")] = None,
-    learned_nets: Annotated[str | None, typer.Option(help="Comma-separated nets.")] = None,
-    patients: Annotated[
-        list[str] | None,
-        typer.Option(help="Phantom seeds, seed ranges A-B or subject folders; repeatable."),
-    ] = None,
-    phantom_spacing: Annotated[float | None, typer.Option(help="Phantom voxel size, mm.")] = None,
-    threads: Annotated[int | None, typer.Option(help="torch threads per trial.")] = None,
-    device: Annotated[str | None, typer.Option(help="cpu or cuda.")] = None,
+    options: RunOptions = ALL_DEFAULTS,
 ) -> None:
     """Several seeds and a hyperparameter grid on Ray Tune; every trial is a normal run folder
     (sonogym eval / plot / report work on it); a table of the trials and the mean ± 1 sigma
-    learning curves at the end."""
+    learning curves at the end. Every trial takes the run options below."""
     from sonogym.agents.sweep import import_ray, parse_grid
     from sonogym.agents.sweep import sweep as run_sweep
 
     import_ray()  # says how to install Ray before anything else
-    _check_positive(("--seeds", seeds), ("--samples", samples), ("--envs", envs),
-                    ("--steps", steps), ("--max-concurrent", max_concurrent))  # fmt: skip
+    _check_positive(("--seeds", seeds), ("--samples", samples),
+                    ("--max-concurrent", max_concurrent))  # fmt: skip
+    with _bad_parameter():
+        options.check()
     if resume:  # the sweep continues as sweep.json defines it: refuse what would change it
-        given = {"--seeds": seeds, "--grid": grid, "--samples": samples, "--preset": preset,
-                 "--envs": envs, "--steps": steps, "--net": net,
-                 "--obs-downsample": obs_downsample, "--obs-mode": obs_mode,
-                 "--simulator": simulator, "--learned-nets": learned_nets,
-                 "--patients": patients, "--phantom-spacing": phantom_spacing,
-                 "--threads": threads, "--device": device}  # fmt: skip
-        changed = [k for k, v in given.items() if v is not None]
+        given = {"--seeds": seeds, "--grid": grid, "--samples": samples}
+        changed = [k for k, v in given.items() if v is not None] + options.given()
         if changed:
             raise typer.BadParameter(
                 f"--resume continues the sweep as {out / 'sweep.json'} defines it; leave out "
                 f"{', '.join(changed)} (or start a new sweep in another folder)"
             )
-    try:
+    with _bad_parameter():
         points = parse_grid(grid)
-    except ValueError as e:
-        raise typer.BadParameter(str(e)) from None
-    kw = _env_options(simulator, learned_nets, patients, phantom_spacing)
-    if obs_mode is not None:
-        kw["obs_mode"] = obs_mode
-    options = dict(preset=preset or "auto", envs=envs, steps=steps, net=net,
-                   obs_downsample=obs_downsample, threads=threads, device=device or "cpu",
-                   env_kwargs=kw or None)  # fmt: skip
+        kw = options.env_kwargs()
+    run = {**options.train_kwargs(), "preset": options.preset or "auto",
+           "device": options.device or "cpu", "env_kwargs": kw or None}  # fmt: skip
     res = run_sweep(task, algo, out, seeds=seeds or 3, grid=points, samples=samples or 1,
-                    address=address,
-                    max_concurrent=max_concurrent, resume=resume, force=force, log=typer.echo,
-                    **options)  # fmt: skip
+                    address=address, max_concurrent=max_concurrent, resume=resume, force=force,
+                    log=typer.echo, **run)  # fmt: skip
     failed = [r for r in res.trials if r.status == "ERROR"]
     if failed and len(failed) == len(res.trials):  # nothing trained: not a success
         raise ValueError(

@@ -118,7 +118,7 @@ _RECIPES = (
             "sonogym eval --run runs/surg-img-w5-s0 --protocol odt-patient --envs 50",
             "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50 --filter-mode zero "
             "--name idt-zero",
-            "sonogym record --task surgery --preset mb --episodes 150 --envs 16 "
+            "sonogym record --task surgery --recipe mb --episodes 150 --envs 16 "
             "--out runs/ds-surg-mb",
             "sonogym il-train --policy act --data runs/ds-surg-mb --steps 30000 --threads 1 "
             "--out runs/il-surg-act",
@@ -176,7 +176,7 @@ _RECIPES = (
         (
             f"sonogym sweep --task navigation --algo ppo --seeds 3 {_NAV_SWEEP} "
             "--out runs/sweep-nav-ppo",
-            "sonogym record --task navigation --preset mb --episodes 1000 --envs 16 "
+            "sonogym record --task navigation --recipe mb --episodes 1000 --envs 16 "
             "--out runs/ds-nav-mb-1000",
             "sonogym il-train --policy act --data runs/ds-nav-mb-1000 --image-size 100x75 "
             "--steps 128000 --threads 1 --out runs/il-nav-act-1000",

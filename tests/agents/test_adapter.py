@@ -89,8 +89,8 @@ def test_final_observations_substitute_true_final_obs():
 def test_training_adapter_staggers_the_first_episodes_where_the_task_asks():
     from sonogym.agents.configs import task_config
 
-    assert task_config("surgery").stagger_episodes is True
-    assert task_config("navigation").stagger_episodes is False
+    assert task_config("surgery").learning.stagger_episodes is True
+    assert task_config("navigation").learning.stagger_episodes is False
     for stagger in (True, False):
         env = SurgeryEnv(8, obs_mode="state", **FAST)
         SkrlEnvAdapter(env, seed=0, stagger_episodes=stagger).reset()

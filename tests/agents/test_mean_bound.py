@@ -3,6 +3,8 @@ construction (``bounded_mean``, surgery's default) or pulled back in by a penalt
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -55,8 +57,10 @@ def test_mean_outside_the_box_is_pulled_back_in_by_gradient_steps():
 
 
 def test_penalty_is_a_task_setting_off_by_default_and_validated():
-    assert task_config("surgery").mean_bound_penalty == 0.0
-    assert task_config("surgery", mean_bound_penalty=10.0).mean_bound_penalty == 10.0
+    assert task_config("surgery").learning.mean_bound_penalty == 0.0
+    rl = task_config("surgery")
+    learning = dataclasses.replace(rl.learning, mean_bound_penalty=10.0)
+    assert task_config("surgery", learning=learning).learning.mean_bound_penalty == 10.0
     with pytest.raises(ValueError, match="mean_bound_penalty must be >= 0"):
         SharedActorCritic("surgery", LAYOUT, BOX, "cpu", "paper", 0.0, 1.0, -1.0)
 
@@ -79,8 +83,8 @@ def test_bounded_mean_stays_in_the_box_and_starts_as_the_raw_mean():
 
 
 def test_bounded_mean_is_surgerys_default_and_what_its_policy_acts_with():
-    assert task_config("surgery").bounded_mean is True
-    assert task_config("navigation").bounded_mean is False
+    assert task_config("surgery").learning.bounded_mean is True
+    assert task_config("navigation").learning.bounded_mean is False
     torch.manual_seed(0)
     model = SharedActorCritic("surgery", LAYOUT, BOX, "cpu", "paper", -3.0, 1.0,
                               bounded_mean=True)  # fmt: skip

@@ -75,10 +75,10 @@ def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
 def test_every_preset_keeps_the_tasks_exploration(preset):
     # presets size the machine's share only; the task owns its initial policy std
     surg = resolve_train_config("surgery", "ppo", preset=preset)
-    assert surg.rl.init_log_std == pytest.approx(math.log(0.05))
-    assert surg.rl.standardize_vectors
+    assert surg.rl.learning.init_log_std == pytest.approx(math.log(0.05))
+    assert surg.rl.learning.standardize_vectors
     nav = resolve_train_config("navigation", "ppo", preset=preset)
-    assert nav.rl.init_log_std == get_task("navigation").training.init_log_std
+    assert nav.rl.learning == get_task("navigation").training.learning
 
 
 def test_explicit_options_win_over_preset_and_task():

@@ -3,6 +3,7 @@ observations are standardised by running statistics that checkpoints keep."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -18,17 +19,23 @@ from sonogym.agents.train import train
 from sonogym.envs.registry import make_vec
 
 
+def with_learning(rl, **changes):
+    """``rl`` (a TaskRLConfig) with ``changes`` to its learning settings."""
+    return dataclasses.replace(rl, learning=dataclasses.replace(rl.learning, **changes))
+
+
 def test_surgery_explores_at_the_corridors_scale():
     cfg = task_config("surgery")
     # ~5 mm / 0.05 rad per command, not sigma = 1
-    assert math.exp(cfg.init_log_std) == pytest.approx(0.05)
+    assert math.exp(cfg.learning.init_log_std) == pytest.approx(0.05)
     env = make_vec("surgery", 1, obs_mode="state", phantom_spacing=0.002)
     adapter = SkrlEnvAdapter(env)
     model = make_models("surgery", adapter.layout, adapter.action_space, "cpu", "small",
-                        cfg.init_log_std)["policy"]  # fmt: skip
+                        cfg.learning.init_log_std)["policy"]  # fmt: skip
     assert torch.allclose(model.log_std.exp(), torch.full((6,), 0.05))
     # navigation and reconstruction keep the sigma = 1 that their CPU runs learned with
-    assert task_config("navigation").init_log_std == task_config("reconstruction").init_log_std == 0
+    assert task_config("navigation").learning.init_log_std == 0
+    assert task_config("reconstruction").learning.init_log_std == 0
 
 
 def test_running_standardizer_matches_the_pooled_statistics():
@@ -82,7 +89,7 @@ def test_surgery_state_inputs_reach_the_network_at_order_one(tmp_path):
 def test_surgery_exploration_narrows_geometrically_to_its_floor():
     from sonogym.agents.networks import log_std_ceiling
 
-    cfg = task_config("surgery")
+    cfg = task_config("surgery").learning
     assert math.exp(cfg.final_log_std) == pytest.approx(0.005) and cfg.anneal_steps == 100_000
     a, b, n = cfg.init_log_std, cfg.final_log_std, cfg.anneal_steps
     assert log_std_ceiling(0, a, b, n) == pytest.approx(a)
@@ -92,7 +99,7 @@ def test_surgery_exploration_narrows_geometrically_to_its_floor():
     steps = [log_std_ceiling(t, a, b, n) for t in range(0, n + 1, 997)]
     assert all(x > y for x, y in zip(steps, steps[1:], strict=False))
     # the other tasks keep a free sigma
-    assert task_config("navigation").final_log_std is None
+    assert task_config("navigation").learning.final_log_std is None
 
 
 def test_training_samples_under_the_ceiling_and_eval_restores_it(tmp_path):
@@ -112,8 +119,7 @@ def test_training_samples_under_the_ceiling_and_eval_restores_it(tmp_path):
     )  # fmt: skip
     init, final = math.log(0.05), math.log(0.01)
     cfg = dataclasses.replace(
-        base, rl=dataclasses.replace(base.rl, init_log_std=init, final_log_std=final,
-                                     anneal_steps=32),
+        base, rl=with_learning(base.rl, init_log_std=init, final_log_std=final, anneal_steps=32),
     )  # fmt: skip
     run = tmp_path / "anneal"
     run_training(cfg, run, progress=False, log=lambda _: None)
@@ -135,7 +141,7 @@ def test_training_samples_under_the_ceiling_and_eval_restores_it(tmp_path):
     assert log_std.max() <= final + 1e-6
     assert policy.log_std.detach().max() > final + 0.5  # the parameter itself is not clamped
 
-    bad = dataclasses.replace(cfg.rl, final_log_std=math.log(0.1))
+    bad = with_learning(cfg.rl, final_log_std=math.log(0.1))
     with pytest.raises(ValueError, match="final_log_std .* above init_log_std"):
         dataclasses.replace(cfg, rl=bad)
 
@@ -147,13 +153,13 @@ def test_observation_statistics_freeze_after_standardize_steps(tmp_path):
     from sonogym.agents.train import run_training
 
     torch.set_num_threads(1)
-    assert task_config("surgery").standardize_steps == 30_000
+    assert task_config("surgery").learning.standardize_steps == 30_000
     base = resolve_train_config(
         "surgery", "ppo", preset="cpu", envs=4, steps=32, checkpoint_interval=16,
         env_kwargs=dict(patients=(0,), phantom_spacing=0.002, obs_mode="state",
                         episode_length=16),
     )  # fmt: skip
-    cfg = dataclasses.replace(base, rl=dataclasses.replace(base.rl, standardize_steps=16))
+    cfg = dataclasses.replace(base, rl=with_learning(base.rl, standardize_steps=16))
     run = tmp_path / "frozen"
     run_training(cfg, run, progress=False, log=lambda _: None)
     at16 = read_checkpoint(run / "checkpoints" / "agent_16.pt")["obs_standardizer"]
@@ -162,7 +168,7 @@ def test_observation_statistics_freeze_after_standardize_steps(tmp_path):
     for k in ("count", "mean", "var"):  # then frozen
         assert torch.equal(at16[k], at32[k])
     with pytest.raises(ValueError, match="standardize_steps must be an integer >= 0"):
-        dataclasses.replace(base, rl=dataclasses.replace(base.rl, standardize_steps=-1))
+        dataclasses.replace(base, rl=with_learning(base.rl, standardize_steps=-1))
 
 
 def test_kl_threshold_follows_sigma_when_asked(tmp_path, monkeypatch):
@@ -176,16 +182,16 @@ def test_kl_threshold_follows_sigma_when_asked(tmp_path, monkeypatch):
     torch.set_num_threads(1)
     rl = task_config("surgery", preset="cpu")
     base_kl = rl.ppo.kl_threshold
-    assert not rl.kl_follows_sigma and kl_threshold_at(rl, "ppo", 10**6) == base_kl  # off
-    on = dataclasses.replace(rl, kl_follows_sigma=True)
+    assert not rl.learning.kl_follows_sigma and kl_threshold_at(rl, "ppo", 10**6) == base_kl  # off
+    on = with_learning(rl, kl_follows_sigma=True)
     # the threshold bounds the same mean step at every sigma: x (sigma_0 / ceiling)^2
     assert kl_threshold_at(on, "ppo", 0) == pytest.approx(base_kl)
-    end = kl_threshold_at(on, "ppo", on.anneal_steps)
+    end = kl_threshold_at(on, "ppo", on.learning.anneal_steps)
     assert end == pytest.approx(base_kl * (0.05 / 0.005) ** 2)
-    assert kl_threshold_at(on, "ppo", 10 * on.anneal_steps) == pytest.approx(end)
-    mid = kl_threshold_at(on, "ppo", on.anneal_steps // 2)
+    assert kl_threshold_at(on, "ppo", 10 * on.learning.anneal_steps) == pytest.approx(end)
+    mid = kl_threshold_at(on, "ppo", on.learning.anneal_steps // 2)
     assert mid == pytest.approx(base_kl * 10.0)  # geometric: sqrt(100)
-    no_anneal = dataclasses.replace(on, final_log_std=None)
+    no_anneal = with_learning(on, final_log_std=None)
     assert kl_threshold_at(no_anneal, "ppo", 10**6) == base_kl
 
     # ... and the training loop hands it to skrl's scheduler before every update
@@ -204,9 +210,7 @@ def test_kl_threshold_follows_sigma_when_asked(tmp_path, monkeypatch):
                         episode_length=16),
     )  # fmt: skip
     fast = dataclasses.replace(
-        base.rl,
-        kl_follows_sigma=True,
-        anneal_steps=32,
+        with_learning(base.rl, kl_follows_sigma=True, anneal_steps=32),
         ppo=dataclasses.replace(base.rl.ppo, rollouts=8),
     )
     run_training(dataclasses.replace(base, rl=fast), tmp_path / "kl", progress=False,

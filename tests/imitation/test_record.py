@@ -162,22 +162,22 @@ def test_a_mode_other_than_the_datasets_is_refused_before_anything_is_written(tm
     assert not (tmp_path / "d").exists()
 
 
-def test_presets_are_the_papers_settings():
+def test_recipes_are_the_papers_settings():
     nav = get_task("navigation").dataset
-    assert [(p.name, p.episodes) for p in nav.presets] == [
+    assert [(p.name, p.episodes) for p in nav.recipes] == [
         ("mb", 2052), ("lb", 1869), ("lb-4-nets", 954)
     ]  # fmt: skip
     sur = get_task("surgery").dataset
-    assert [(p.name, p.episodes) for p in sur.presets] == [
+    assert [(p.name, p.episodes) for p in sur.recipes] == [
         ("mb", 3536), ("mb-5-patients", 1476), ("lb", 2052), ("lb-4-nets", 2692)
     ]  # fmt: skip
-    assert sur.preset("mb-5-patients").env_kwargs["patients"] == (0, 1, 2, 3, 4)
-    assert sur.preset("lb-4-nets").env_kwargs["learned_nets"] == (0, 1, 2, 3)
+    assert sur.recipe("mb-5-patients").env_kwargs["patients"] == (0, 1, 2, 3, 4)
+    assert sur.recipe("lb-4-nets").env_kwargs["learned_nets"] == (0, 1, 2, 3)
     # the appendix's wider data-collection starts, which may be unsafe
-    assert sur.preset("mb").env_kwargs["joint_noise"] == (0.3, 0.25, 0.2, 0.2, 0.2, 0.2, 0.1)
-    assert sur.preset("mb").env_kwargs["require_free_start"] is False
-    with pytest.raises(ValueError, match="unknown dataset preset"):
-        sur.preset("xl")
+    assert sur.recipe("mb").env_kwargs["joint_noise"] == (0.3, 0.25, 0.2, 0.2, 0.2, 0.2, 0.1)
+    assert sur.recipe("mb").env_kwargs["require_free_start"] is False
+    with pytest.raises(ValueError, match="unknown dataset recipe"):
+        sur.recipe("xl")
 
 
 def test_cli_record_il_train_and_eval_an_il_run(tmp_path):

@@ -17,7 +17,7 @@ def test_parse_pose():
             parse_pose(bad)
 
 
-def test_render_both_presets(small_phantom):
+def test_render_both_models(small_phantom):
     poses = default_poses(small_phantom)
     assert len(poses) == 2 and poses[0][2] == pytest.approx(math.pi)
     r = render(small_phantom, poses, ("physical", "sonogym"))
@@ -27,7 +27,7 @@ def test_render_both_presets(small_phantom):
     # the beam reaches bone: some of the image is shadow, some is bright
     phys = r.images["physical"]
     assert (phys > 0.8).float().mean() > 0.0005 and (phys < 0.05).float().mean() > 0.05
-    with pytest.raises(ValueError, match="known presets"):
+    with pytest.raises(ValueError, match="known models"):
         render(small_phantom, poses, ("fancy",))
 
 

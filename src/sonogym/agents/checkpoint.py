@@ -98,12 +98,13 @@ def load_policy(
     low = np.asarray(cfg["action_space"]["low"], np.float32)
     high = np.asarray(cfg["action_space"]["high"], np.float32)
     box = gym.spaces.Box(low, high, dtype=np.float32)
-    bounded = bool(cfg["task_config"].get("bounded_mean", False))  # runs before it: False
+    learning = cfg["task_config"]["learning"]
+    bounded = bool(learning.get("bounded_mean", False))  # runs before it: False
     model = make_models(cfg["task"], layout, box, device, run_net(cfg), bounded_mean=bounded)[
         "policy"
     ]
     load_module(model, checkpoint, "policy", device)
-    set_log_std_ceiling(model, cfg["task_config"], RL_RUN.step_of(checkpoint))
+    set_log_std_ceiling(model, learning, RL_RUN.step_of(checkpoint))
     model.eval()
     return model, cfg
 
@@ -132,14 +133,15 @@ def load_module(module: torch.nn.Module, checkpoint: str | Path, key: str, devic
         ) from None
 
 
-def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int | None) -> None:
-    """Cap ``model``'s log sigma where the run anneals exploration (``final_log_std``), at its
-    value after ``step`` env steps per env (None: the end of the schedule)."""
-    final = task_config.get("final_log_std")
+def set_log_std_ceiling(model: SharedActorCritic, learning: dict, step: int | None) -> None:
+    """Cap ``model``'s log sigma where the run anneals exploration (``final_log_std`` of its
+    ``task_config.learning``), at its value after ``step`` env steps per env (None: the end of
+    the schedule)."""
+    final = learning.get("final_log_std")
     if final is None:
         return
-    anneal = int(task_config.get("anneal_steps", 0))
-    ceiling = log_std_ceiling(anneal if step is None else step, task_config["init_log_std"],
+    anneal = int(learning.get("anneal_steps", 0))
+    ceiling = log_std_ceiling(anneal if step is None else step, learning["init_log_std"],
                               final, anneal)  # fmt: skip
     model.log_std_max.fill_(ceiling)
 
@@ -149,8 +151,9 @@ def filter_settings(task_config: dict) -> tuple[float, str]:
     written before the mode existed get today's default, ``SafetyParams.filter_mode``)."""
     from sonogym.envs.spec import SafetyParams
 
-    mode = task_config.get("filter_mode", SafetyParams.filter_mode)
-    return float(task_config["cost_threshold"]), mode
+    safety = task_config["safety"]
+    mode = safety.get("filter_mode", SafetyParams.filter_mode)
+    return float(safety["cost_threshold"]), mode
 
 
 def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
@@ -177,6 +180,7 @@ RUN_CONFIG_KEYS = ("task", "algo", "seed", "obs_layout", "action_space", "task_c
 def run_config(run: str | Path) -> dict:
     """A run's ``config.json``, with a clear error if it is missing, malformed, incomplete or
     hand-edited into something no run has (``check_run_config``)."""
+    from sonogym.agents.configs import nested_task_config
     from sonogym.envs.registry import check_task_name
     from sonogym.runs import read_json
 
@@ -184,6 +188,8 @@ def run_config(run: str | Path) -> dict:
     cfg = read_json(path, "`sonogym train` run folder", RUN_CONFIG_KEYS)
     check_task_name(cfg["task"], path)  # it names files (eval, plots)
     try:
+        if isinstance(cfg["task_config"], dict):
+            cfg["task_config"] = nested_task_config(cfg["task_config"])
         check_run_config(cfg)
     except ValueError as e:
         raise ValueError(
@@ -208,7 +214,10 @@ def check_run_config(cfg: dict) -> None:
     expect(_is_int(cfg["seed"]), f"seed must be an integer, got {cfg['seed']!r}")
     tc = cfg["task_config"]
     expect(isinstance(tc, dict), f"task_config must be an object, got {tc!r}")
-    missing = [k for k in ("env_kwargs", "obs_downsample", "obs_scales") if k not in tc]
+    learning = tc.get("learning")
+    expect(isinstance(learning, dict), f"task_config.learning must be an object, got {learning!r}")
+    missing = [k for k in ("env_kwargs", "obs_downsample") if k not in tc]
+    missing += ["learning.obs_scales"] if "obs_scales" not in learning else []
     expect(not missing, f"task_config lacks {missing}")
     expect(isinstance(tc["env_kwargs"], dict), "task_config.env_kwargs must be an object")
     env_config(cfg["task"], lists_to_tuples(tc["env_kwargs"]))
@@ -216,10 +225,10 @@ def check_run_config(cfg: dict) -> None:
         _is_int(tc["obs_downsample"]) and tc["obs_downsample"] >= 1,
         f"task_config.obs_downsample must be an integer >= 1, got {tc['obs_downsample']!r}",
     )
-    scales = tc["obs_scales"]
+    scales = learning["obs_scales"]
     expect(
         isinstance(scales, dict) and all(_is_number(v) for v in scales.values()),
-        f"task_config.obs_scales must map entries to finite numbers, got {scales!r}",
+        f"task_config.learning.obs_scales must map entries to finite numbers, got {scales!r}",
     )
     net_size(run_net(cfg))
     layout = cfg["obs_layout"]
@@ -309,8 +318,8 @@ def rl_policy(
     model, cfg = load_policy(run, checkpoint, device)
     tc = cfg["task_config"]
     adapter = SkrlEnvAdapter(
-        env, tc["obs_downsample"], tc["obs_scales"],
-        standardize_vectors=tc.get("standardize_vectors", False),
+        env, tc["obs_downsample"], tc["learning"]["obs_scales"],
+        standardize_vectors=tc["learning"].get("standardize_vectors", False),
     )  # fmt: skip
     if adapter.standardizer is not None:
         load_module(adapter.standardizer, checkpoint or _newest(run), "obs_standardizer", device)

@@ -31,16 +31,26 @@ import torch
 
 from sonogym.envs.base import check_number_fields
 from sonogym.envs.registry import check_algo, env_config, get_task
-from sonogym.envs.spec import A2CParams, PPOParams, SafetyParams
+from sonogym.envs.spec import A2CParams, LearningParams, PPOParams, SafetyParams
 from sonogym.runs import lists_to_tuples, to_jsonable
 
-__all__ = ["A2CParams", "PPOParams", "TaskRLConfig", "build_agent", "task_config", "to_jsonable"]
+__all__ = [
+    "A2CParams",
+    "LearningParams",
+    "PPOParams",
+    "SafetyParams",
+    "TaskRLConfig",
+    "build_agent",
+    "task_config",
+    "to_jsonable",
+]
 
 
 @dataclass(frozen=True)
 class TaskRLConfig:
     """Everything a training run of one task needs besides the algorithm's own numbers:
-    the task's registry defaults (``sonogym.envs.spec.TrainingDefaults``) after overrides."""
+    the task's registry defaults (``sonogym.envs.spec.TrainingDefaults``) after overrides.
+    ``learning`` and ``safety`` are the registry's own records, not copies of their fields."""
 
     task: str
     ppo: PPOParams
@@ -49,24 +59,9 @@ class TaskRLConfig:
     num_envs: int = 128  # paper
     obs_downsample: int = 1  # integer average-pooling factor of image observations
     net: str = "paper"  # network size: a key of ``networks.NET_SIZES`` (paper, small, lean)
-    obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
-    reward_scale: float = 1.0  # unitless factor on rewards before learning
-    init_log_std: float = 0.0  # initial log sigma of the Gaussian policy, action units
-    final_log_std: float | None = None  # log sigma ceiling after anneal_steps (None: none)
-    anneal_steps: int = 0  # env steps per env over which the log sigma ceiling falls
-    init_mean_gain: float = 1.0  # factor on the mean head's initial weights
-    mean_bound_penalty: float = 0.0  # weight of the loss on the mean outside the action box
-    bounded_mean: bool = False  # policy mean squashed into the action box (networks)
-    stagger_episodes: bool = False  # first episodes of a run end at random steps (adapter)
-    standardize_vectors: bool = False  # running standardisation of vector observations
-    standardize_steps: int = 0  # env steps per env its statistics learn for (0: all)
-    kl_follows_sigma: bool = False  # KL threshold x (sigma_0 / sigma ceiling)^2 (train.py)
+    learning: LearningParams = field(default_factory=LearningParams)  # scales, exploration
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # make_vec options
-    cost_learning_rate: float = 1e-4  # ppo-sf / ppo-lag: cost network's Adam learning rate
-    cost_threshold: float = 0.5  # ppo-sf: filter where Q_c(o, a) > this (cost in [0, 1])
-    filter_mode: str = "search"  # ppo-sf at test time: "search" or "zero" (safety_filter.py)
-    cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
-    pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd
+    safety: SafetyParams = field(default_factory=SafetyParams)  # ppo-sf / ppo-lag settings
 
     @property
     def env_id(self) -> str:
@@ -83,33 +78,30 @@ def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
     "cpu" takes the task's CPU PPO table where it has one (``TrainingDefaults.ppo_cpu``) and its
     CPU env options (``TrainingDefaults.env_kwargs_cpu``)."""
     t = get_task(task).training
-    safety = t.safety or SafetyParams()
     base = TaskRLConfig(
         task=task,
         ppo=t.ppo_cpu if (preset == "cpu" and t.ppo_cpu is not None) else t.ppo,
         a2c=t.a2c,
         timesteps=t.timesteps,
         num_envs=t.num_envs,
-        obs_scales=dict(t.obs_scales),
-        reward_scale=t.reward_scale,
-        init_log_std=t.init_log_std,
-        final_log_std=t.final_log_std,
-        anneal_steps=t.anneal_steps,
-        init_mean_gain=t.init_mean_gain,
-        mean_bound_penalty=t.mean_bound_penalty,
-        bounded_mean=t.bounded_mean,
-        stagger_episodes=t.stagger_episodes,
-        standardize_vectors=t.standardize_vectors,
-        standardize_steps=t.standardize_steps,
-        kl_follows_sigma=t.kl_follows_sigma,
-        cost_learning_rate=safety.cost_learning_rate,
-        cost_threshold=safety.cost_threshold,
-        filter_mode=safety.filter_mode,
-        cost_limit=safety.cost_limit,
-        pid_gains=safety.pid_gains,
+        learning=t.learning,
+        safety=t.safety or SafetyParams(),
         env_kwargs=dict(t.env_kwargs_cpu) if preset == "cpu" else {},
     )
     return dataclasses.replace(base, **overrides)
+
+
+def nested_task_config(tc: dict[str, Any]) -> dict[str, Any]:
+    """A ``config.json`` ``task_config`` in today's layout: runs written before the learning
+    and safety settings were nested (``learning``, ``safety``) kept their fields at the top
+    level; they move into their record (a field the run never wrote stays absent)."""
+    out = dict(tc)
+    for group, cls in (("learning", LearningParams), ("safety", SafetyParams)):
+        names = {f.name for f in dataclasses.fields(cls)}
+        flat = {k: out.pop(k) for k in list(out) if k in names}
+        nested = out.get(group)
+        out[group] = {**flat, **nested} if isinstance(nested, dict) else (nested or flat)
+    return out
 
 
 #: Options a resumed run may change: how long it runs and where (the rest defines the run).
@@ -142,15 +134,16 @@ class TrainConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 flag = {"num_envs": "envs", "timesteps": "steps"}.get(name, name)
                 raise ValueError(f"{flag} must be a positive integer, got {v!r}")
-        final, anneal = self.rl.final_log_std, self.rl.anneal_steps
+        learning = self.rl.learning
+        final, anneal = learning.final_log_std, learning.anneal_steps
         if isinstance(anneal, bool) or not isinstance(anneal, int) or anneal < 0:
             raise ValueError(f"anneal_steps must be an integer >= 0, got {anneal!r}")
-        frozen = self.rl.standardize_steps
+        frozen = learning.standardize_steps
         if isinstance(frozen, bool) or not isinstance(frozen, int) or frozen < 0:
             raise ValueError(f"standardize_steps must be an integer >= 0, got {frozen!r}")
-        if final is not None and final > self.rl.init_log_std:
+        if final is not None and final > learning.init_log_std:
             raise ValueError(
-                f"final_log_std {final} is above init_log_std {self.rl.init_log_std}: the "
+                f"final_log_std {final} is above init_log_std {learning.init_log_std}: the "
                 "ceiling only lowers sigma; pass final_log_std <= init_log_std, or None for none"
             )
         if self.threads is not None and self.threads < 1:
@@ -200,10 +193,11 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
         """Back from ``to_dict`` (a run's ``config.json``)."""
-        tc = dict(d["task_config"])
+        tc = nested_task_config(d["task_config"])
         tc["ppo"] = PPOParams(**tc["ppo"])
         tc["a2c"] = A2CParams(**tc["a2c"])
-        tc["pid_gains"] = tuple(tc["pid_gains"])
+        tc["learning"] = LearningParams(**tc["learning"])
+        tc["safety"] = SafetyParams(**lists_to_tuples(tc["safety"]))
         tc["env_kwargs"] = lists_to_tuples(tc.get("env_kwargs", {}))
         names = {f.name for f in dataclasses.fields(TaskRLConfig)}
         rl = TaskRLConfig(**{k: v for k, v in tc.items() if k in names})
@@ -361,7 +355,7 @@ def build_agent(
     from skrl.resources.preprocessors.torch import RunningStandardScaler
     from skrl.resources.schedulers.torch import KLAdaptiveLR
 
-    p = cfg.params(algo)
+    p, reward_scale = cfg.params(algo), cfg.learning.reward_scale
     out = Path(out)
     common = dict(
         rollouts=p.rollouts,
@@ -376,7 +370,7 @@ def build_agent(
         grad_norm_clip=p.grad_norm_clip,
         entropy_loss_scale=p.entropy_loss_scale,
         time_limit_bootstrap=p.time_limit_bootstrap,
-        rewards_shaper=RewardScale(cfg.reward_scale) if cfg.reward_scale != 1.0 else None,
+        rewards_shaper=RewardScale(reward_scale) if reward_scale != 1.0 else None,
         experiment=ExperimentCfg(
             directory=str(out.parent),
             experiment_name=out.name,
@@ -393,16 +387,17 @@ def build_agent(
 
             cfg_cls, cls = PPO_SF_CFG, PPOSafetyFilter
             common.update(
-                cost_learning_rate=cfg.cost_learning_rate, cost_threshold=cfg.cost_threshold
+                cost_learning_rate=cfg.safety.cost_learning_rate,
+                cost_threshold=cfg.safety.cost_threshold,
             )
         elif algo == "ppo-lag":
             from sonogym.agents.lagrangian import PPO_LAG_CFG, PPOLagrangian
 
             cfg_cls, cls = PPO_LAG_CFG, PPOLagrangian
             common.update(
-                cost_learning_rate=cfg.cost_learning_rate,
-                cost_limit=cfg.cost_limit,
-                pid_gains=cfg.pid_gains,
+                cost_learning_rate=cfg.safety.cost_learning_rate,
+                cost_limit=cfg.safety.cost_limit,
+                pid_gains=cfg.safety.pid_gains,
             )
         else:
             cfg_cls, cls = PPO_CFG, PPO

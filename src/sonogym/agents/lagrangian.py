@@ -20,35 +20,23 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
-import gymnasium as gym
 import torch
 import torch.nn.functional as F
 from skrl.agents.torch.ppo import PPO, PPO_CFG
 from skrl.agents.torch.ppo.ppo import compute_gae
-from skrl.models.torch import DeterministicMixin, Model
 from skrl.resources.schedulers.torch import KLAdaptiveLR
 from torch import nn
 
-from sonogym.agents.adapter import ObsLayout
-from sonogym.agents.networks import Encoder, init_flat_model
+from sonogym.agents.networks import CostModel
 
 
-class CostValue(DeterministicMixin, Model):
+class CostValue(CostModel):
     """V_c(o): expected discounted cost-to-go (role "cost_value"); its own task encoder."""
 
-    def __init__(
-        self,
-        task: str,
-        layout: ObsLayout,
-        action_space: gym.spaces.Box,
-        device: str | torch.device | None = None,
-        net: str = "paper",
-    ) -> None:
-        init_flat_model(self, layout, action_space, device)
-        DeterministicMixin.__init__(self, clip_actions=False, role="cost_value")
-        self.encoder = Encoder(task, layout, net)
+    ROLE = "cost_value"
+
+    def add_head(self, action_dim: int) -> None:
         self.head = nn.Linear(self.encoder.out_features, 1)
-        self.to(self.device)
 
     def compute(self, inputs, role: str = ""):
         return self.head(self.encoder(inputs["observations"])), {}

@@ -105,6 +105,28 @@ def init_flat_model(model: Model, layout: ObsLayout, action_space: gym.spaces.Bo
     Model.__init__(model, observation_space=obs_space, action_space=action_space, device=device)
 
 
+class CostModel(DeterministicMixin, Model):
+    """A deterministic cost model on its own task encoder (``Encoder``) and the head its
+    subclass adds (``add_head``): the safety filter's cost critic, the Lagrangian's cost value.
+    ``ROLE`` is its skrl role and its key in an agent's models."""
+
+    ROLE = ""
+
+    def __init__(
+        self, task: str, layout: ObsLayout, action_space: gym.spaces.Box,
+        device: str | torch.device | None = None, net: str = "paper",
+    ) -> None:  # fmt: skip
+        init_flat_model(self, layout, action_space, device)
+        DeterministicMixin.__init__(self, clip_actions=False, role=self.ROLE)
+        self.encoder = Encoder(task, layout, net)
+        self.add_head(int(action_space.shape[0]))
+        self.to(self.device)
+
+    def add_head(self, action_dim: int) -> None:
+        """Build the layers after the encoder (``encoder.out_features`` inputs)."""
+        raise NotImplementedError
+
+
 def conv_stack(in_shape: tuple[int, int, int], spec) -> tuple[nn.Sequential, int]:
     """ReLU conv stack over (C, H, W) inputs -> (module, flattened output size)."""
     layers: list[nn.Module] = []

@@ -32,36 +32,24 @@ from __future__ import annotations
 
 import dataclasses
 
-import gymnasium as gym
 import torch
 import torch.nn.functional as F
 from skrl.agents.torch.ppo import PPO, PPO_CFG
-from skrl.models.torch import DeterministicMixin, Model
 from torch import nn
 
-from sonogym.agents.adapter import ObsLayout
-from sonogym.agents.networks import VECTOR_MLP, Encoder, init_flat_model, mlp
+from sonogym.agents.networks import VECTOR_MLP, CostModel, mlp
 
 
-class CostCritic(DeterministicMixin, Model):
+class CostCritic(CostModel):
     """Q_c(o, a): expected immediate cost of action a in observation o (role "cost_critic")."""
 
-    def __init__(
-        self,
-        task: str,
-        layout: ObsLayout,
-        action_space: gym.spaces.Box,
-        device: str | torch.device | None = None,
-        net: str = "paper",
-    ) -> None:
-        init_flat_model(self, layout, action_space, device)
-        DeterministicMixin.__init__(self, clip_actions=False, role="cost_critic")
-        self.encoder = Encoder(task, layout, net)
-        self.action_mlp = mlp(int(action_space.shape[0]), VECTOR_MLP)
+    ROLE = "cost_critic"
+
+    def add_head(self, action_dim: int) -> None:
+        self.action_mlp = mlp(action_dim, VECTOR_MLP)
         self.head = nn.Sequential(
             mlp(self.encoder.out_features + VECTOR_MLP[-1], (256, 128)), nn.Linear(128, 1)
         )
-        self.to(self.device)
 
     def compute(self, inputs, role: str = ""):
         feats = self.encoder(inputs["observations"])

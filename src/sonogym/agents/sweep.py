@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from sonogym.agents.configs import TrainConfig, resolve_train_config
+from sonogym.envs.options import parse_value
 from sonogym.runs import (
     atomic_write_json,
     atomic_write_text,
@@ -43,10 +44,12 @@ from sonogym.runs import (
 
 RAY_HINT = "sonogym sweep needs Ray Tune: pip install 'sonogym[ray]' (or pip install 'ray[tune]')"
 SWEEP_FILE = "sweep.json"
-TASK_KEYS = (
-    "num_envs", "net", "obs_downsample", "reward_scale", "init_log_std", "final_log_std",
-    "anneal_steps", "mean_bound_penalty", "standardize_steps", "kl_follows_sigma",
+#: Grid keys of the learning settings (``TaskRLConfig.learning``), written without a prefix.
+LEARNING_KEYS = (
+    "reward_scale", "init_log_std", "final_log_std", "anneal_steps", "mean_bound_penalty",
+    "standardize_steps", "kl_follows_sigma",
 )  # fmt: skip
+TASK_KEYS = ("num_envs", "net", "obs_downsample", *LEARNING_KEYS)
 
 
 @dataclass(frozen=True)
@@ -114,6 +117,8 @@ def apply(base: TrainConfig, params: dict[str, Any]) -> TrainConfig:
             rl = dataclasses.replace(rl, **{head: table})
         elif head == "env":
             rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, field: v})
+        elif key in LEARNING_KEYS:  # a LearningParams field, named flat in the grid
+            rl = dataclasses.replace(rl, learning=dataclasses.replace(rl.learning, **{key: v}))
         else:
             rl = dataclasses.replace(rl, **{key: v})
     return dataclasses.replace(base, rl=rl, seed=int(params.get("seed", base.seed)))
@@ -308,14 +313,3 @@ def _write_table(out: Path, rows: list[TrialRow]) -> None:
         if r.error:
             md.append(f"\n{r.name} failed: {r.error}")
     atomic_write_text(out / "sweep.md", "\n".join(md) + "\n")
-
-
-def parse_value(text: str) -> Any:
-    """A grid or ``--env-option`` value: int, float, true/false/none, else the text."""
-    text = text.strip()
-    for conv in (int, float):
-        try:
-            return conv(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False, "none": None}.get(text.lower(), text)

@@ -243,9 +243,9 @@ def _run_training(
     torch.manual_seed(cfg.seed)
     env = make_env(cfg.rl, cfg.rl.num_envs, device)
     adapter = SkrlEnvAdapter(
-        env, cfg.rl.obs_downsample, cfg.rl.obs_scales, seed=cfg.seed + start,
-        standardize_vectors=cfg.rl.standardize_vectors,
-        stagger_episodes=cfg.rl.stagger_episodes,
+        env, cfg.rl.obs_downsample, cfg.rl.learning.obs_scales, seed=cfg.seed + start,
+        standardize_vectors=cfg.rl.learning.standardize_vectors,
+        stagger_episodes=cfg.rl.learning.stagger_episodes,
     )  # fmt: skip
     adapter.update_stats = statistics_update(cfg.rl, start)
     check_training_memory(cfg, adapter.observation_space.shape[0])  # before skrl allocates
@@ -287,11 +287,11 @@ def _run_training(
     bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
     done = start
     recent = _EpisodeMeans()
-    task_cfg = to_jsonable(cfg.rl)
+    learning = to_jsonable(cfg.rl.learning)
     try:
         for t in range(start, steps):
-            set_log_std_ceiling(models["policy"], task_cfg, t)
-            if cfg.rl.kl_follows_sigma and getattr(agent, "scheduler", None) is not None:
+            set_log_std_ceiling(models["policy"], learning, t)
+            if cfg.rl.learning.kl_follows_sigma and getattr(agent, "scheduler", None) is not None:
                 agent.scheduler.kl_threshold = kl_threshold_at(cfg.rl, algo, t)
             adapter.update_stats = statistics_update(cfg.rl, t)
             agent.pre_interaction(timestep=t, timesteps=steps)
@@ -405,9 +405,10 @@ class _EpisodeMeans:
 def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
     task, net, device = cfg.task, cfg.rl.net, cfg.device
     layout, space = adapter.layout, adapter.action_space
+    learning = cfg.rl.learning
     models = make_models(
-        task, layout, space, device, net, cfg.rl.init_log_std, cfg.rl.init_mean_gain,
-        cfg.rl.mean_bound_penalty, cfg.rl.bounded_mean,
+        task, layout, space, device, net, learning.init_log_std, learning.init_mean_gain,
+        learning.mean_bound_penalty, learning.bounded_mean,
     )  # fmt: skip
     if cfg.algo == "ppo-sf":
         from sonogym.agents.safety_filter import CostCritic
@@ -497,11 +498,12 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
     at every sigma. Off by default: on the surgery state task it kept the learning rate 3-8x
     higher and made the tilt worse (the reward barely paid for the tilt; the ``cpu`` preset's
     w5 = 50 fixed that)."""
-    base = rl.params(algo).kl_threshold
-    if not rl.kl_follows_sigma or rl.final_log_std is None:
+    base, learning = rl.params(algo).kl_threshold, rl.learning
+    if not learning.kl_follows_sigma or learning.final_log_std is None:
         return base
-    ceiling = log_std_ceiling(step, rl.init_log_std, rl.final_log_std, rl.anneal_steps)
-    return base * math.exp(2.0 * (rl.init_log_std - ceiling))
+    init, final = learning.init_log_std, learning.final_log_std
+    ceiling = log_std_ceiling(step, init, final, learning.anneal_steps)
+    return base * math.exp(2.0 * (init - ceiling))
 
 
 def statistics_update(rl: TaskRLConfig, step: int) -> bool:
@@ -513,7 +515,8 @@ def statistics_update(rl: TaskRLConfig, step: int) -> bool:
     target's standardised depth by 1.2, 0.6 and 0.25 std per 12 k steps while its KL-adaptive
     learning rate, shrinking with sigma, sat at 1e-6: the policy could no longer follow its own
     inputs."""
-    return rl.standardize_steps == 0 or step < rl.standardize_steps
+    frozen_after = rl.learning.standardize_steps
+    return frozen_after == 0 or step < frozen_after
 
 
 def _track_episode_metrics(agent, info: dict[str, Any]) -> None:

@@ -121,6 +121,33 @@ class TorchVectorEnv(VectorEnv):
     def uniform(self, low, high, *shape: int) -> torch.Tensor:
         return low + (high - low) * self.rand(*shape)
 
+    def draw_surface_starts(
+        self,
+        env_ids: torch.Tensor,
+        centre: torch.Tensor,
+        half_extent: float,
+        yaw_range: tuple[float, float],
+    ) -> torch.Tensor:
+        """Start surface commands of the probe tasks for ``env_ids``: the rows of ``centre``
+        (N, >= 3: x, z in m, yaw in rad, ...) with (x, z) moved uniformly within
+        +-``half_extent`` (m) each and the yaw drawn uniformly in ``yaw_range`` (rad); further
+        columns are kept. Draws x, then z, then yaw from the env's generator."""
+        k = len(env_ids)
+        cmd = centre[env_ids].clone()
+        cmd[:, 0] += self.uniform(-half_extent, half_extent, k).float()
+        cmd[:, 1] += self.uniform(-half_extent, half_extent, k).float()
+        cmd[:, 2] = self.uniform(yaw_range[0], yaw_range[1], k).float()
+        return cmd
+
+    def _set_action_scaling(self, scale: tuple[float, ...], limit: tuple[float, ...]) -> float:
+        """Set ``action_scale`` (SI units per action unit) and ``action_limit`` (SI units per
+        step) as float32 tensors on the env's device: an action a moves the command by
+        clip(a * scale, +-limit). Returns the action bound: the largest |a| a component can use
+        before it is clipped, max(limit / scale)."""
+        self.action_scale = torch.tensor(scale, dtype=torch.float32, device=self.device)
+        self.action_limit = torch.tensor(limit, dtype=torch.float32, device=self.device)
+        return float(max(lim / s for lim, s in zip(limit, scale, strict=True)))
+
     # ------------------------------------------------------------------ API
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

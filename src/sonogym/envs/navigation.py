@@ -44,22 +44,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import ClassVar, Literal, get_args
 
 import numpy as np
 import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.footprint import check_env_fits
-from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     CONV4,
     SMALL_CONV4,
     A2CParams,
-    DatasetPreset,
+    DatasetRecipe,
     DatasetSpec,
     Demo,
     EnvMemory,
@@ -72,29 +72,19 @@ from sonogym.envs.spec import (
 )
 from sonogym.geometry import relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
-from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 ObsMode = Literal["us", "us_heading", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 
 
 @dataclass(frozen=True)
-class NavigationConfig:
+class NavigationConfig(SceneConfig):
     """Navigation task settings (paper defaults). Every field is a ``make_vec`` keyword."""
 
-    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
-    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: SimulatorName = "physical"
-    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
-    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
-    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
-    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
+    obs_modes: ClassVar[tuple[str, ...]] = OBS_MODES
+
     obs_mode: ObsMode = "us"
-    device: str = "cpu"
-    episode_length: int = 300  # control steps (paper)
     robot: ArmName | None = "kuka_med14"  # probe arm; None: an ideal probe at the command
-    target_vertebra: str = "L4"
     goal_yaw: float = math.pi  # rad, transverse image plane
     start_half_extent: float = 0.065  # m: start (x, z) uniform in +-this around {G}
     start_yaw: tuple[float, float] = (1.5, 3.5)  # rad
@@ -103,20 +93,6 @@ class NavigationConfig:
     action_scale: tuple[float, float, float] = (0.003, 0.003, 0.1)  # m, m, rad per unit
     action_limit: tuple[float, float, float] = (0.006, 0.006, 0.2)  # m, m, rad per step
     w1: float = 0.045  # reward per mm of position progress (paper)
-
-    def __post_init__(self) -> None:
-        check_number_fields(self)
-        object.__setattr__(
-            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
-        )
-        if self.obs_mode not in OBS_MODES:
-            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
-        if self.episode_length < 1:
-            raise ValueError("episode_length must be >= 1")
-        if isinstance(self.patients, int | str):
-            object.__setattr__(self, "patients", (self.patients,))
-        object.__setattr__(self, "patients", tuple(self.patients))
-        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
 
 def navigation_reward(
@@ -167,7 +143,6 @@ class NavigationEnv(TorchVectorEnv):
             cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False
         )
         n = num_envs
-        dt = torch.float32
         # Goal command per env: above the target vertebra's body centroid, transverse.
         centres = self.scene.target_centres  # (N, 3)
         self.goal_cmd = torch.stack(
@@ -175,12 +150,7 @@ class NavigationEnv(TorchVectorEnv):
         )
         self.goal_pos, self.goal_rot = self.scene.surface_pose(self.goal_cmd)
         self.command = self.goal_cmd.clone()
-        self.action_scale = torch.tensor(cfg.action_scale, dtype=dt, device=self.device)
-        self.action_limit = torch.tensor(cfg.action_limit, dtype=dt, device=self.device)
-        bound = float(
-            max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
-        )
-        self.action_bound = bound
+        self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         unit_image = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
         obs_space = {
             "us": unit_image,
@@ -199,12 +169,8 @@ class NavigationEnv(TorchVectorEnv):
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:
-        cfg, k = self.cfg, len(env_ids)
-        h = cfg.start_half_extent
-        cmd = self.goal_cmd[env_ids].clone()
-        cmd[:, 0] += self.uniform(-h, h, k).float()
-        cmd[:, 1] += self.uniform(-h, h, k).float()
-        cmd[:, 2] = self.uniform(cfg.start_yaw[0], cfg.start_yaw[1], k).float()
+        cfg = self.cfg
+        cmd = self.draw_surface_starts(env_ids, self.goal_cmd, cfg.start_half_extent, cfg.start_yaw)
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)
         self._state[env_ids] = self._measure(env_ids)
@@ -333,10 +299,10 @@ SPEC = TaskSpec(
         instruction="Navigate the ultrasound probe to the transverse view above L4.",
         robot_type="kuka_med14",
         fps=60,  # the reference's control rate
-        presets=(  # the paper's appendix Table "Number of episodes for expert datasets"
-            DatasetPreset("mb", 2052, {"simulator": "physical", "patients": (0,)}),
-            DatasetPreset("lb", 1869, {"simulator": "learned", "learned_nets": (0,)}),
-            DatasetPreset("lb-4-nets", 954, {"simulator": "learned", "learned_nets": (0, 1, 2, 3)}),
+        recipes=(  # the paper's appendix Table "Number of episodes for expert datasets"
+            DatasetRecipe("mb", 2052, {"simulator": "physical", "patients": (0,)}),
+            DatasetRecipe("lb", 1869, {"simulator": "learned", "learned_nets": (0,)}),
+            DatasetRecipe("lb-4-nets", 954, {"simulator": "learned", "learned_nets": (0, 1, 2, 3)}),
         ),
         success=lambda m: (m["position_error_mm"] < 5.0) & (m["angle_error_deg"] < 5.0),
     ),

@@ -83,7 +83,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import ClassVar, Literal, get_args
 
 import numpy as np
 import torch
@@ -92,10 +92,10 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.footprint import check_env_fits
-from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     CONV3,
     SMALL_CONV3,
@@ -110,7 +110,6 @@ from sonogym.envs.spec import (
 )
 from sonogym.geometry import normalize, relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
-from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
 
 ObsMode = Literal["reconstruction", "state"]
@@ -118,22 +117,15 @@ OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 
 
 @dataclass(frozen=True)
-class ReconstructionConfig:
-    """Reconstruction task settings (paper defaults). Every field is a ``make_vec`` keyword."""
+class ReconstructionConfig(SceneConfig):
+    """Reconstruction task settings (paper defaults). Every field is a ``make_vec`` keyword.
+    ``simulator`` makes the images of ``env.scene.observe("us")``, for viewing only: the
+    surface sensor does not read them."""
 
-    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
-    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: SimulatorName = "physical"  # of env.scene.observe("us") (viewing only; not sensed)
-    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
-    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
-    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
-    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
+    obs_modes: ClassVar[tuple[str, ...]] = OBS_MODES
+
     obs_mode: ObsMode = "reconstruction"  # Dict observation, or the privileged state
-    device: str = "cpu"
-    episode_length: int = 300  # control steps (paper)
     robot: ArmName | None = "kuka_med14"  # probe arm; None: an ideal probe at the command
-    target_vertebra: str = "L4"
     start_half_extent: float = 0.015  # m: start (x, z) uniform in +-this around the vertebra
     start_yaw: tuple[float, float] = (1.47, 1.67)  # rad, 1.57 +- 0.1 (sagittal image)
     workspace_half_extent: float = 0.06  # m: command (x, z) clamped to +-this around it
@@ -151,20 +143,9 @@ class ReconstructionConfig:
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (DESIGN.md §5)
 
     def __post_init__(self) -> None:
-        check_number_fields(self)
-        object.__setattr__(
-            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
-        )
-        if self.obs_mode not in OBS_MODES:
-            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
-        if self.episode_length < 1:
-            raise ValueError("episode_length must be >= 1")
+        super().__post_init__()
         if not 0.0 <= self.missing_rate <= 1.0:
             raise ValueError(f"missing_rate must be in [0, 1], got {self.missing_rate}")
-        if isinstance(self.patients, int | str):
-            object.__setattr__(self, "patients", (self.patients,))
-        object.__setattr__(self, "patients", tuple(self.patients))
-        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
     @property
     def cube_half_extent(self) -> float:
@@ -303,13 +284,7 @@ class ReconstructionEnv(TorchVectorEnv):
             np.stack([f.rotation for f in frames]), dtype=torch.float32, device=dev
         )[pid]
         self.command = self.goal_cmd.clone()
-        dt = torch.float32
-        self.action_scale = torch.tensor(cfg.action_scale, dtype=dt, device=dev)
-        self.action_limit = torch.tensor(cfg.action_limit, dtype=dt, device=dev)
-        bound = float(
-            max(lim / s for lim, s in zip(cfg.action_limit, cfg.action_scale, strict=True))
-        )
-        self.action_bound = bound
+        self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         if cfg.obs_mode == "reconstruction":
             obs_space = spaces.Dict(
                 {
@@ -344,12 +319,8 @@ class ReconstructionEnv(TorchVectorEnv):
 
     # ------------------------------------------------------------------ hooks
     def _reset_idx(self, env_ids: torch.Tensor) -> None:
-        cfg, k = self.cfg, len(env_ids)
-        h = cfg.start_half_extent
-        cmd = self.goal_cmd[env_ids].clone()
-        cmd[:, 0] += self.uniform(-h, h, k).float()
-        cmd[:, 1] += self.uniform(-h, h, k).float()
-        cmd[:, 2] = self.uniform(cfg.start_yaw[0], cfg.start_yaw[1], k).float()
+        cfg = self.cfg
+        cmd = self.draw_surface_starts(env_ids, self.goal_cmd, cfg.start_half_extent, cfg.start_yaw)
         cmd[:, 3] = 0.0
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)

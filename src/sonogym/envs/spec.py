@@ -82,9 +82,10 @@ class Feature:
 
 
 @dataclass(frozen=True)
-class DatasetPreset:
-    """One expert-dataset setting of the paper: its name, default episode count and the env
-    options it records with (simulator, nets, patients, start randomisation)."""
+class DatasetRecipe:
+    """How one of the paper's expert datasets is recorded: its name (``sonogym record
+    --recipe``), default episode count and the env options it records with (simulator, nets,
+    patients, start randomisation)."""
 
     name: str
     episodes: int
@@ -104,15 +105,15 @@ class DatasetSpec:
     instruction: str
     robot_type: str
     fps: int
-    presets: tuple[DatasetPreset, ...]
+    recipes: tuple[DatasetRecipe, ...]
     success: Callable[[dict[str, torch.Tensor]], torch.Tensor]
 
-    def preset(self, name: str) -> DatasetPreset:
-        for p in self.presets:
-            if p.name == name:
-                return p
+    def recipe(self, name: str) -> DatasetRecipe:
+        for r in self.recipes:
+            if r.name == name:
+                return r
         raise ValueError(
-            f"unknown dataset preset {name!r}; choose from {[p.name for p in self.presets]}"
+            f"unknown dataset recipe {name!r}; choose from {[r.name for r in self.recipes]}"
         )
 
 
@@ -197,27 +198,22 @@ class SafetyParams:
     cost_limit: float = 5.0  # ppo-lag: limit on the mean discounted cost return (cost units)
     pid_gains: tuple[float, float, float] = (0.05, 0.0005, 0.1)  # ppo-lag: Kp, Ki, Kd
 
+    def __post_init__(self) -> None:
+        check_number_fields(self)
+
 
 @dataclass(frozen=True)
-class TrainingDefaults:
-    """A task's RL defaults: the paper's tables and what the network needs to know.
+class LearningParams:
+    """How a task's observations, rewards and policy are shaped for learning, whatever the
+    algorithm: observation and reward scales, the Gaussian policy's initial exploration and
+    its optional narrowing, and the training env's episode staggering.
 
-    ``trunks`` maps a conv size ("paper", "small") to the conv layers of the task's image
-    trunk (``agents.networks.NET_SIZES`` names the one each ``net`` uses: ``lean`` the
-    small); ``vector_splits`` names vector observation entries the encoder splits into named
-    parts with one MLP each (surgery's pose: ("pos", 3), ("quat", 4)); ``init_log_std`` is the
-    Gaussian policy's initial log standard deviation in action units (exploration);
-    ``final_log_std`` (None: off) is a ceiling on it that falls linearly in log space from
-    ``init_log_std`` to this value over the first ``anneal_steps`` env steps per env, then stays
-    (exploration that narrows as the policy sharpens; PPO may still shrink sigma faster)."""
+    ``init_log_std`` is the Gaussian policy's initial log standard deviation in action units
+    (exploration); ``final_log_std`` (None: off) is a ceiling on it that falls linearly in log
+    space from ``init_log_std`` to this value over the first ``anneal_steps`` env steps per env,
+    then stays (exploration that narrows as the policy sharpens; PPO may still shrink sigma
+    faster)."""
 
-    algos: tuple[str, ...]
-    ppo: PPOParams  # the paper's table
-    a2c: A2CParams
-    timesteps: int  # env steps per env (reference trainer timesteps)
-    trunks: dict[str, ConvSpec]
-    num_envs: int = 128  # paper
-    image_height: int | None = None  # px of the image observation (presets pool it), None: none
     obs_scales: dict[str, float] = field(default_factory=dict)  # per entry, unitless
     reward_scale: float = 1.0  # unitless factor on rewards before learning
     init_log_std: float = 0.0  # log of sigma in action units
@@ -227,13 +223,37 @@ class TrainingDefaults:
     mean_bound_penalty: float = 0.0  # weight of the loss on the policy mean outside the box
     bounded_mean: bool = False  # policy mean squashed into the action box (tanh), see networks
     stagger_episodes: bool = False  # training: first episodes end at random steps (base env)
+    standardize_vectors: bool = False  # running standardisation of vector observations
+    standardize_steps: int = 0  # env steps per env the statistics learn for (0: the whole run)
+    kl_follows_sigma: bool = False  # KL-adaptive lr threshold scaled by (sigma_0 / ceiling)^2
+
+    def __post_init__(self) -> None:
+        check_number_fields(self)  # NaN, inf; 2.0 steps becomes 2
+
+
+@dataclass(frozen=True)
+class TrainingDefaults:
+    """A task's RL defaults: the paper's tables and what the network needs to know.
+
+    ``trunks`` maps a conv size ("paper", "small") to the conv layers of the task's image
+    trunk (``agents.networks.NET_SIZES`` names the one each ``net`` uses: ``lean`` the
+    small); ``vector_splits`` names vector observation entries the encoder splits into named
+    parts with one MLP each (surgery's pose: ("pos", 3), ("quat", 4)); ``learning`` shapes
+    observations, rewards and exploration (``LearningParams``); ``safety`` configures the
+    safe-RL algorithms of a task with a cost."""
+
+    algos: tuple[str, ...]
+    ppo: PPOParams  # the paper's table
+    a2c: A2CParams
+    timesteps: int  # env steps per env (reference trainer timesteps)
+    trunks: dict[str, ConvSpec]
+    num_envs: int = 128  # paper
+    image_height: int | None = None  # px of the image observation (presets pool it), None: none
+    learning: LearningParams = field(default_factory=LearningParams)
     ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
     # env options the ``cpu`` preset trains with, where the paper's own do not train on a CPU
     # budget (documented deviations; the env's defaults stay the paper's, and so does ``paper``)
     env_kwargs_cpu: dict[str, Any] = field(default_factory=dict)
-    standardize_vectors: bool = False  # running standardisation of vector observations
-    standardize_steps: int = 0  # env steps per env the statistics learn for (0: the whole run)
-    kl_follows_sigma: bool = False  # KL-adaptive lr threshold scaled by (sigma_0 / ceiling)^2
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
     safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
 

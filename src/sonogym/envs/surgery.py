@@ -109,25 +109,26 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import ClassVar, Literal, get_args
 
 import numpy as np
 import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
 from sonogym.envs.footprint import check_env_fits
-from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     CONV3,
     SMALL_CONV3,
     A2CParams,
-    DatasetPreset,
+    DatasetRecipe,
     DatasetSpec,
     Demo,
     EnvMemory,
     Feature,
+    LearningParams,
     Metric,
     PPOParams,
     SafetyParams,
@@ -142,7 +143,6 @@ from sonogym.geometry import (
     matrix_from_axis_angle,
     quat_from_matrix,
 )
-from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 ObsMode = Literal["us", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
@@ -157,21 +157,13 @@ _START_REDRAWS = 20
 
 
 @dataclass(frozen=True)
-class SurgeryConfig:
+class SurgeryConfig(SceneConfig):
     """Surgery task settings (paper defaults). Every field is a ``make_vec`` keyword."""
 
-    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
-    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: SimulatorName = "physical"
-    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
-    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
-    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
-    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
+    obs_modes: ClassVar[tuple[str, ...]] = OBS_MODES
+
     obs_mode: ObsMode = "us"
-    device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
-    target_vertebra: str = "L4"
     side: Side = "right"  # drilled pedicle, the patient's side
     skin_distance: float = 0.05  # m, l: p_l = [0, 0, -l] in {G} (appendix: 50 mm)
     corridor_margin: float = 0.002  # m, d = 2 (r + corridor_margin)
@@ -199,16 +191,9 @@ class SurgeryConfig:
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
-        check_number_fields(self)
-        object.__setattr__(
-            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
-        )
-        if self.obs_mode not in OBS_MODES:
-            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
+        super().__post_init__()
         if self.side not in SIDES:
             raise ValueError(f"side {self.side!r} is not one of {SIDES}")
-        if self.episode_length < 1:
-            raise ValueError("episode_length must be >= 1")
         if len(self.joint_noise) != 7 or any(v < 0 for v in self.joint_noise):
             raise ValueError(f"joint_noise needs 7 values >= 0 (rad), got {self.joint_noise}")
         for name in ("action_scale", "action_limit"):
@@ -228,10 +213,6 @@ class SurgeryConfig:
                 "unsafe_distance_penalty (per m) and unsafe_distance_cap (m) must be >= 0, got "
                 f"{self.unsafe_distance_penalty}, {self.unsafe_distance_cap}"
             )
-        if isinstance(self.patients, int | str):
-            object.__setattr__(self, "patients", (self.patients,))
-        object.__setattr__(self, "patients", tuple(self.patients))
-        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -437,8 +418,7 @@ class SurgeryEnv(TorchVectorEnv):
         n, dev = num_envs, self.device
         f32 = dict(dtype=torch.float32, device=dev)
         self.half_width = self.scene.radius + cfg.corridor_margin  # (N,) d/2, m
-        self.action_scale = torch.tensor(cfg.action_scale, **f32)
-        self.action_limit = torch.tensor(cfg.action_limit, **f32)
+        self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         self.joint_noise = torch.tensor(cfg.joint_noise, **f32)
         bound = (self.action_limit / self.action_scale).cpu().numpy()
         img_shape = self.scene.image_shape
@@ -671,25 +651,27 @@ SPEC = TaskSpec(
         timesteps=200_000,
         trunks={"paper": CONV3, "small": SMALL_CONV3},
         image_height=50,
-        # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
-        # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
-        init_log_std=math.log(0.05),
-        # ... narrowing to 0.005 (~0.5 mm per command) over 100 k steps: at a constant ~0.035
-        # the state policy kept ~8 mm above the target, which lies on C_drill's boundary
-        final_log_std=math.log(0.005),
-        anneal_steps=100_000,
-        init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
-        # the policy mean stays inside the action box (networks.squash_into_box): with sigma
-        # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
-        bounded_mean=True,
-        # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
-        stagger_episodes=True,
-        # mean_bound_penalty stays 0: bounded_mean keeps the means in the box already, and the
-        # penalty alone did not keep seeds from collapsing (networks.SharedActorCritic)
-        standardize_vectors=True,  # poses in metres: mm differences at order 1
-        # ... with statistics frozen after 30 k steps: drifting statistics under a learning
-        # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
-        standardize_steps=30_000,
+        learning=LearningParams(
+            # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
+            # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
+            init_log_std=math.log(0.05),
+            # ... narrowing to 0.005 (~0.5 mm per command) over 100 k steps: at a constant ~0.035
+            # the state policy kept ~8 mm above the target, which lies on C_drill's boundary
+            final_log_std=math.log(0.005),
+            anneal_steps=100_000,
+            init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
+            # the policy mean stays inside the action box (networks.squash_into_box): with sigma
+            # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
+            bounded_mean=True,
+            # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
+            stagger_episodes=True,
+            # mean_bound_penalty stays 0: bounded_mean keeps the means in the box already, and the
+            # penalty alone did not keep seeds from collapsing (networks.SharedActorCritic)
+            standardize_vectors=True,  # poses in metres: mm differences at order 1
+            # ... with statistics frozen after 30 k steps: drifting statistics under a learning
+            # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
+            standardize_steps=30_000,
+        ),
         # measured on 2 CPU cores (obs_mode="state", 64 envs): the paper's table (16 rollouts,
         # 32 mini-batches of 32, 3 epochs, lr 1e-4) had reached only p_l after 0.33 M env steps
         ppo_cpu=PPOParams(
@@ -716,8 +698,8 @@ SPEC = TaskSpec(
         robot_type="kuka_med14+franka_fr3",
         fps=60,  # the reference's control rate
         # the paper's appendix: wider initial joints, starts that may be unsafe
-        presets=tuple(
-            DatasetPreset(name, n, {**kw, **_DATA_COLLECTION_STARTS})
+        recipes=tuple(
+            DatasetRecipe(name, n, {**kw, **_DATA_COLLECTION_STARTS})
             for name, n, kw in (
                 ("mb", 3536, {"simulator": "physical", "patients": (0,)}),
                 ("mb-5-patients", 1476, {"simulator": "physical", "patients": (0, 1, 2, 3, 4)}),

@@ -159,3 +159,20 @@ def protocol_train_kwargs(name: str, **explicit: Any) -> dict[str, Any]:
     """Training env options of protocol ``name`` with ``explicit`` overrides (None: not given),
     checked: ``sonogym train --protocol``."""
     return protocol(name).train_env_kwargs(**explicit)
+
+
+def protocol_env_kwargs(
+    name: str,
+    env_kwargs: dict[str, Any],
+    patients: tuple | None = None,
+    simulator: str | None = None,
+) -> dict[str, Any]:
+    """``env_kwargs`` with the training env options of protocol ``name`` merged in, where the
+    run's own ``patients``, ``simulator`` and ``env_kwargs["learned_nets"]`` (None / absent: not
+    given) override the protocol's: ``sonogym train --protocol``."""
+    own = {
+        "patients": patients,
+        "simulator": simulator,
+        "learned_nets": env_kwargs.get("learned_nets"),
+    }
+    return {**env_kwargs, **protocol_train_kwargs(name, **own)}

@@ -8,7 +8,7 @@ observation the expert acted on (the task's dataset features, images quantised t
 ``quantize_images`` does) and the action it took, in the env's action units.
 
 Safe writing: episodes land whole or not at all (``DatasetWriter``); ``meta/sonogym.json``
-(task, preset, env options, seed, envs, batches done, episodes written and failed) is written
+(task, recipe, env options, seed, envs, batches done, episodes written and failed) is written
 before the first batch and after each batch. ``resume`` continues an interrupted recording
 (interrupted in its first batch too): it reruns the interrupted batch (batches are
 deterministic) and skips the episodes that batch had already written, so nothing is duplicated
@@ -120,7 +120,7 @@ def record(
     task: str,
     out: str | Path,
     episodes: int | None = None,
-    preset: str | None = None,
+    recipe: str | None = None,
     envs: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
     seed: int | None = None,
@@ -131,8 +131,9 @@ def record(
 ) -> RecordResult:
     """Record ``episodes`` expert episodes of ``task`` into ``out`` (see the module doc).
 
-    ``preset``: one of the task's dataset presets (its env options and, unless ``episodes`` is
-    given, its episode count); ``env_kwargs`` add to / override them."""
+    ``recipe``: one of the task's dataset recipes (``DatasetSpec.recipes``: its env options
+    and, unless ``episodes`` is given, its episode count); ``env_kwargs`` add to / override
+    them."""
     dataset_spec(task)  # refuses a task without datasets
     default_mode = get_task(task).default_obs_mode
     if (env_kwargs or {}).get("obs_mode", default_mode) != default_mode:
@@ -153,15 +154,17 @@ def record(
     with prepare_output(out, resume=resume, force=force, kind="dataset") as folder:
         if folder.deleted:
             log(deleted_message(out, folder.deleted))
-        return _record(task, out, episodes, preset, envs, env_kwargs, seed, resume, progress, log)
+        return _record(task, out, episodes, recipe, envs, env_kwargs, seed, resume, progress, log)
 
 
-def _record(task, out, episodes, preset, envs, env_kwargs, seed, resume, progress, log):
+def _record(task, out, episodes, recipe, envs, env_kwargs, seed, resume, progress, log):
     spec = dataset_spec(task)
     t0 = time.perf_counter()
     if resume:
         meta = read_json(out / META, "sonogym recording", ("task", "env_kwargs", "envs", "seed"))
-        given = {"task": task, "preset": preset, "envs": envs, "seed": seed,
+        if "preset" in meta:  # recordings before the recipe had its name
+            meta["recipe"] = meta.pop("preset")
+        given = {"task": task, "recipe": recipe, "envs": envs, "seed": seed,
                  "env_kwargs": env_kwargs or None}  # fmt: skip
         clash = [k for k, v in given.items() if v is not None and to_jsonable(v) != meta.get(k)]
         if clash:
@@ -171,14 +174,14 @@ def _record(task, out, episodes, preset, envs, env_kwargs, seed, resume, progres
             )
         episodes = episodes or meta["episodes_wanted"]
         kw = lists_to_tuples(meta["env_kwargs"])
-        envs, seed, preset = meta["envs"], meta["seed"], meta.get("preset")
+        envs, seed, recipe = meta["envs"], meta["seed"], meta.get("recipe")
     else:
         seed = 0 if seed is None else seed
-        kw = dict(spec.preset(preset).env_kwargs) if preset else {}
+        kw = dict(spec.recipe(recipe).env_kwargs) if recipe else {}
         kw.update(env_kwargs or {})
         if episodes is None:
-            episodes = spec.preset(preset).episodes if preset else 100
-        meta = {"task": task, "preset": preset, "envs": envs, "seed": seed,
+            episodes = spec.recipe(recipe).episodes if recipe else 100
+        meta = {"task": task, "recipe": recipe, "envs": envs, "seed": seed,
                 "env_kwargs": to_jsonable(kw), "episodes_wanted": episodes, "batches_done": 0,
                 "episodes_written": 0, "failed": 0}  # fmt: skip
     if episodes < 1:

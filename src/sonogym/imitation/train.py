@@ -44,8 +44,8 @@ class ILTrainConfig:
     out: run folder (refused if it exists, unless ``resume`` or ``force``).
     policy: a registered policy's name ("act", "diffusion", ...: ``policies.registry``).
     policy_config: that policy's config (``ACTConfig``, ``DiffusionConfig``, ...); None: the
-        ``preset`` of ``policy``.
-    preset: "cpu" or "paper" (used when ``policy_config`` is None).
+        ``size`` of ``policy``.
+    size: the policy's model size, "cpu" or "paper" (used when ``policy_config`` is None).
     steps: optimiser steps in total, resumed ones included (>= 1).
     batch_size: samples per step (the reference: 8).
     seed: seed of initialisation, sample order and the model's noise.
@@ -68,7 +68,7 @@ class ILTrainConfig:
     out: str
     policy: str = "act"
     policy_config: Any = None
-    preset: str = "cpu"
+    size: str = "cpu"
     steps: int = 10_000
     batch_size: int = 8
     seed: int = 1000
@@ -99,7 +99,53 @@ class ILTrainConfig:
             raise ValueError("resume and force exclude each other")
 
     def resolved_policy_config(self):
-        return self.policy_config or make_config(self.policy, self.preset)
+        return self.policy_config or make_config(self.policy, self.size)
+
+
+def parse_image_size(text: str) -> tuple[int, int]:
+    """``--image-size`` text "HxW" (pixels, e.g. "100x75") -> (H, W)."""
+    h, sep, w = text.lower().partition("x")
+    if not (sep and h.isdigit() and w.isdigit() and int(h) > 0 and int(w) > 0):
+        raise ValueError(f"--image-size takes HxW in pixels, e.g. 100x75; got {text!r}")
+    return int(h), int(w)
+
+
+def il_train_settings(
+    policy: str,
+    old: dict[str, Any] | None = None,
+    *,
+    size: str | None = None,
+    image_size: str | None = None,
+    steps: int | None = None,
+    batch_size: int | None = None,
+    seed: int | None = None,
+) -> dict[str, Any]:
+    """The ``ILTrainConfig`` fields ``policy``, ``size``, ``policy_config``, ``steps``,
+    ``batch_size`` and ``seed`` that ``sonogym il-train``'s options resolve to (None: not
+    given).
+
+    ``old``: the config.json of the run being resumed (None: a new run). What is left out
+    continues as that run was trained: its seed, batch size, steps and, unless ``size`` or
+    ``image_size`` is given or the policy differs, its policy config. A new run takes the
+    ``cpu`` size, 10 000 steps, batches of 8 and seed 1000. ``image_size``: "HxW" in pixels.
+    """
+    if old is not None:
+        seed = old["seed"] if seed is None else seed
+        batch_size = old["train"]["batch_size"] if batch_size is None else batch_size
+        steps = old["train"]["steps"] if steps is None else steps
+    overrides = {} if image_size is None else {"image_size": parse_image_size(image_size)}
+    if old is not None and not (overrides or size is not None) and old["policy"] == policy:
+        policy_config = get_policy(policy).config_cls.from_dict(old["policy_config"])
+    else:
+        policy_config = make_config(policy, size or "cpu", **overrides) if overrides else None
+    return {
+        "policy": policy,
+        "size": size or "cpu",
+        "policy_config": policy_config,
+        "steps": steps or 10_000,
+        "batch_size": batch_size or 8,
+        "seed": 1000 if seed is None else seed,
+    }
 
 
 @dataclass(frozen=True)

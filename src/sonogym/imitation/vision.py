@@ -4,7 +4,7 @@
   residual blocks, stride 2 from the second stage on; output stride 32 for four stages). With
   widths (64, 128, 256, 512) and two blocks per stage it is ResNet-18's trunk without the
   classifier (what LeRobot's ACT and Diffusion Policy use); smaller widths and one block per
-  stage make the CPU presets. Norm: GroupNorm with channels / 16 groups (LeRobot's
+  stage make the cpu sizes. Norm: GroupNorm with channels / 16 groups (LeRobot's
   ``use_group_norm`` replacement) or BatchNorm.
 * ``SpatialSoftmax``: Diffusion Policy's keypoint pooling: a 1x1 conv to K maps, a softmax
   over each map's pixels and the expected (x, y) in [-1, 1] of each: (B, K, 2).

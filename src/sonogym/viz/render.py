@@ -19,13 +19,14 @@ import torch
 
 from sonogym.anatomy.patient import Patient
 from sonogym.ultrasound.probe import ProbeGeometry
-from sonogym.ultrasound.simulator import PRESETS, ModelBasedSimulator
+from sonogym.ultrasound.simulator import PRESETS as US_MODELS
+from sonogym.ultrasound.simulator import ModelBasedSimulator
 from sonogym.ultrasound.slicer import Slicer, Slices
 
 #: Surface pose: x (m), z (m), yaw (rad), tilt (rad).
 Pose = tuple[float, float, float, float]
 PROBES = {"linear": ProbeGeometry.linear_2d, "volume": ProbeGeometry.volume_3d}
-#: The ``sonogym`` preset's raw output is shown divided by 20, the reference viewer's scale
+#: The ``sonogym`` model's raw output is shown divided by 20, the reference viewer's scale
 #: (its observation, raw x 0.02, is dark: about [0, 0.4]).
 SONOGYM_VIEW_SCALE = 1 / 20
 
@@ -62,7 +63,7 @@ def default_poses(patient: Patient, level: str = "L4") -> list[Pose]:
 
 @dataclass(frozen=True)
 class Rendering:
-    """Slices and images of N poses: images[preset] is (N, E, H, W) in [0, 1] for display."""
+    """Slices and images of N poses: images[model] is (N, E, H, W) in [0, 1] for display."""
 
     poses: list[Pose]
     slices: Slices
@@ -72,22 +73,23 @@ class Rendering:
 def render(
     patient: Patient,
     poses: Sequence[Pose],
-    presets: Sequence[str] = ("physical",),
+    us_models: Sequence[str] = ("physical",),
     probe: ProbeGeometry | None = None,
 ) -> Rendering:
-    """Slice and simulate ``poses`` (surface poses in SI) with each preset.
+    """Slice and simulate ``poses`` (surface poses in SI) with each model-based ultrasound
+    model (``physical``, ``sonogym``).
 
     Display images: ``physical`` as simulated; ``sonogym`` as raw / 20 clipped to [0, 1]."""
     if not poses:
         raise ValueError("render needs at least one pose")
-    for p in presets:
-        if p not in PRESETS:
-            raise ValueError(f"unknown ultrasound preset {p!r}; known presets: {sorted(PRESETS)}")
+    for m in us_models:
+        if m not in US_MODELS:
+            raise ValueError(f"unknown ultrasound model {m!r}; known models: {sorted(US_MODELS)}")
     t = torch.tensor(poses, dtype=torch.float64)
     pos, rot = patient.skin.surface_pose(t[:, 0], t[:, 1], t[:, 2], t[:, 3])
     slices = Slicer(patient, probe)(pos.double(), rot.double())
     images = {}
-    for name in presets:
+    for name in us_models:
         sim = ModelBasedSimulator(name)
         if name == "sonogym":
             images[name] = (sim.simulate_raw(slices) * SONOGYM_VIEW_SCALE).clamp_(0, 1)
@@ -124,8 +126,8 @@ def save_png(image: torch.Tensor | np.ndarray, path: str | Path, scale: int = 1)
 
 
 def save_sheet(rendering: Rendering, path: str | Path, title: str = "") -> Path:
-    """CT slice | label slice | US (one column per preset) for every pose, like the paper's
-    Fig. 4."""
+    """CT slice | label slice | US (one column per ultrasound model) for every pose, like the
+    paper's Fig. 4."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -184,23 +186,23 @@ def save_sheet(rendering: Rendering, path: str | Path, title: str = "") -> Path:
 def render_command(
     patient: Patient,
     poses: Sequence[Pose] | None = None,
-    preset: str = "physical",
+    us_model: str = "physical",
     sheet: bool = False,
     probe: str = "linear",
     out: str | Path = "runs/image",
 ) -> list[Path]:
     """What ``sonogym image`` does: render and write PNGs; returns the written paths.
 
-    preset: "physical", "sonogym" or "both"; probe: "linear" or "volume" (the five elevation
+    us_model: "physical", "sonogym" or "both"; probe: "linear" or "volume" (the five elevation
     slices side by side); out: a folder (per-pose PNGs, or sheet.png with ``sheet``)."""
-    presets = sorted(PRESETS) if preset == "both" else [preset]
+    models = sorted(US_MODELS) if us_model == "both" else [us_model]
     if probe not in PROBES:
         raise ValueError(f"unknown probe {probe!r}; known probes: {sorted(PROBES)}")
     poses = list(poses) if poses else default_poses(patient)
-    r = render(patient, poses, presets, PROBES[probe]())
+    r = render(patient, poses, models, PROBES[probe]())
     out = Path(out)
     if sheet:
-        title = f"{patient.name}: {', '.join(presets)} preset, {probe} probe"
+        title = f"{patient.name}: {', '.join(models)} model, {probe} probe"
         return [save_sheet(r, out / "sheet.png", title)]
     paths = []
     scale = max(1, round(r.slices.probe.depth_spacing / 0.5e-3))  # show pixels at ~0.5 mm

@@ -1,6 +1,6 @@
 """The interface every imitation-learning policy implements: a config and a model.
 
-``ILConfig`` is the base of a policy's frozen-dataclass config: its presets (``paper``,
+``ILConfig`` is the base of a policy's frozen-dataclass config: its model sizes (``paper``,
 ``cpu``), (de)serialisation for a run's config.json, and what the policy needs of the data and
 of the env loop (dataset offsets, frames left out at episode ends, observation history length,
 chunk length, temporal ensembling). ``ILModel`` is the base of its ``nn.Module``: the loss of a
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -44,8 +45,18 @@ class ILConfig(abc.ABC):
 
     image_size: tuple[int, int] | None = None
     temporal_ensemble_coeff: float | None = None
-    #: field values of the ``cpu`` preset (a model that trains on 2 CPU cores)
-    CPU_PRESET: ClassVar[dict[str, Any]] = {}
+    #: field values of the ``cpu`` size (a model that trains on 2 CPU cores)
+    CPU_SIZE: ClassVar[dict[str, Any]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "CPU_PRESET" in cls.__dict__:  # the attribute's name before it became CPU_SIZE
+            warnings.warn(
+                f"{cls.__name__}.CPU_PRESET is deprecated: name it CPU_SIZE",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            cls.CPU_SIZE = cls.__dict__["CPU_PRESET"]
 
     @classmethod
     def paper(cls, **overrides: Any) -> ILConfig:
@@ -54,8 +65,8 @@ class ILConfig(abc.ABC):
 
     @classmethod
     def cpu(cls, **overrides: Any) -> ILConfig:
-        """The small ``CPU_PRESET`` model."""
-        return cls(**{**cls.CPU_PRESET, **overrides})
+        """The small ``CPU_SIZE`` model."""
+        return cls(**{**cls.CPU_SIZE, **overrides})
 
     def to_dict(self) -> dict[str, Any]:
         """The config as a run's config.json holds it (``from_dict`` reads it back)."""

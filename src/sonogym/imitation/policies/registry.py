@@ -16,8 +16,8 @@ from sonogym.imitation.policies.act import ACTConfig, ACTPolicy
 from sonogym.imitation.policies.base import ILConfig, ILModel
 from sonogym.imitation.policies.diffusion import DiffusionConfig, DiffusionPolicy
 
-#: the config presets every policy has (``ILConfig.paper`` / ``ILConfig.cpu``)
-PRESETS = ("paper", "cpu")
+#: the model sizes every policy has (``ILConfig.paper`` / ``ILConfig.cpu``)
+SIZES = ("paper", "cpu")
 
 
 @dataclass(frozen=True)
@@ -71,12 +71,12 @@ def policy_for_algo(algo: str) -> PolicySpec | None:
     return next((s for s in _POLICIES.values() if s.algo == algo), None)
 
 
-def make_config(name: str, preset: str = "cpu", **overrides: Any) -> ILConfig:
-    """The ``paper`` or ``cpu`` preset config of policy ``name``, with ``overrides``."""
+def make_config(name: str, size: str = "cpu", **overrides: Any) -> ILConfig:
+    """The ``paper`` or ``cpu`` size config of policy ``name``, with ``overrides``."""
     spec = get_policy(name)
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose 'paper' or 'cpu'")
-    return getattr(spec.config_cls, preset)(**overrides)
+    if size not in SIZES:
+        raise ValueError(f"unknown policy size {size!r}; choose 'paper' or 'cpu'")
+    return getattr(spec.config_cls, size)(**overrides)
 
 
 register(PolicySpec("act", ACTConfig, ACTPolicy, algo="act", label="ACT"))

@@ -17,7 +17,7 @@ class ACTConfig(ILConfig):
     cores in minutes."""
 
     #: about 1.3 M parameters: 4 small ResNet stages, a 128-wide transformer, chunk 20
-    CPU_PRESET: ClassVar[dict[str, Any]] = dict(
+    CPU_SIZE: ClassVar[dict[str, Any]] = dict(
         chunk_size=20,
         n_action_steps=20,
         backbone_widths=(16, 32, 64, 128),

@@ -18,7 +18,7 @@ class DiffusionConfig(ILConfig):
     a small model that trains on 2 CPU cores."""
 
     #: about 4 M parameters; DDIM with 10 inference steps
-    CPU_PRESET: ClassVar[dict[str, Any]] = dict(
+    CPU_SIZE: ClassVar[dict[str, Any]] = dict(
         backbone_widths=(16, 32, 64, 128),
         backbone_blocks=(1, 1, 1, 1),
         num_keypoints=16,

@@ -12,7 +12,7 @@ two middle blocks, transposed-conv upsampling with skip connections, a final con
 predicted noise at a uniformly drawn step (diffusers' ``DDPMScheduler``: 100 steps,
 squaredcos_cap_v2, betas 1e-4..0.02, samples clipped to ±1). Inference: start from Gaussian
 noise and denoise with the DDPM scheduler over all train steps, or with ``DDIMScheduler`` over
-``num_inference_steps`` (deterministic for eta = 0, much faster; the CPU preset uses 10).
+``num_inference_steps`` (deterministic for eta = 0, much faster; the cpu size uses 10).
 
 Actions of a sample cover steps t - n_obs_steps + 1 .. t - n_obs_steps + horizon; the policy
 executes the n_action_steps starting at step t. Normalisation (LeRobot's DP mapping): images

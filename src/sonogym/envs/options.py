@@ -1,0 +1,104 @@
+"""Env options written as text (the command line, a sweep grid) -> ``make_vec`` keywords.
+
+One parser per kind of text: ``parse_value`` (a number, true/false/none or a word),
+``parse_patients`` (phantom seeds, seed ranges, subject folders and their variants),
+``parse_learned_nets`` (shipped net indices and generator files) and ``parse_env_options``
+(``KEY=VALUE`` items checked against the task's config). Bad text raises ``ValueError``
+naming the item and the fix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+from typing import Any
+
+
+def parse_value(text: str) -> Any:
+    """A grid or ``--env-option`` value: int, float, true/false/none, else the text."""
+    text = text.strip()
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False, "none": None}.get(text.lower(), text)
+
+
+def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
+    """Patients from the command line: an integer is a phantom seed, ``A-B`` (digits, A <= B)
+    the seeds A..B inclusive, ``DIR@N`` variant N of the subject in folder DIR and ``DIR@A-B``
+    its variants A..B (unless that is itself an existing path), anything else a subject folder;
+    None when none were given."""
+    if not specs:
+        return None
+    out: list[int | str] = []
+    for p in specs:
+        m = re.fullmatch(r"(\d+)-(\d+)", p.strip())
+        v = None if Path(p).exists() else re.fullmatch(r"(.+)@(\d+)-(\d+)", p.strip())
+        if m or v:
+            lo, hi = (int(m.group(1)), int(m.group(2))) if m else (int(v[2]), int(v[3]))
+            if lo > hi:
+                raise ValueError(f"patient range {p!r}: {lo} > {hi}; write it low-high")
+            out.extend(range(lo, hi + 1) if m else (f"{v[1]}@{i}" for i in range(lo, hi + 1)))
+        else:
+            out.append(int(p) if p.lstrip("-").isdigit() else p)
+    return tuple(out)
+
+
+def parse_learned_nets(text: str) -> tuple[int | str, ...]:
+    """``--learned-nets`` text: comma-separated shipped net indices (int) and/or generator.pt
+    paths (str), e.g. "0,1,runs/lb/generator.pt"."""
+    return tuple(int(v) if v.strip().isdigit() else v.strip() for v in text.split(","))
+
+
+def parse_env_options(
+    task: str, items: list[str] | None, own_flags: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """``KEY=VALUE`` items -> env keyword arguments; values read as int, float,
+    true/false/none or text (``parse_value``), comma-separated for an option whose default is
+    a tuple. Names an unknown option, a malformed item, a repeated key, a non-number for a
+    numeric option, an option that has its own flag (``own_flags``: option -> the flag to use)
+    and whatever the task's config refuses (NaN, inf or 1e309 for a number, 2.5 for an integer
+    option: 2.0 is taken as 2)."""
+    from sonogym.envs.registry import get_task
+
+    own_flags = own_flags or {}
+    config_cls = get_task(task).config_cls
+    fields = sorted(f.name for f in dataclasses.fields(config_cls))
+    defaults = config_cls()
+    out: dict[str, Any] = {}
+    given: dict[str, str] = {}  # the text as typed, for the messages
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        given[key] = value.strip()
+        if not sep or not key or not value.strip():
+            raise ValueError(f"--env-option {item!r}: write KEY=VALUE, e.g. w5=50")
+        if key in own_flags:
+            raise ValueError(f"--env-option {key}: use {own_flags[key]} for this option")
+        if key not in fields:
+            raise ValueError(
+                f"--env-option {key}: {task} has no such option; its options are {fields}"
+            )
+        if key in out:
+            raise ValueError(f"--env-option {key} is given twice")
+        default = getattr(defaults, key)
+        if isinstance(default, tuple):  # e.g. action_scale=0.003,0.003,0.1
+            out[key] = tuple(parse_value(v) for v in value.split(","))
+            continue
+        out[key] = parse_value(value)
+        number = (int, float)
+        if isinstance(default, number) and not isinstance(out[key], number):
+            raise ValueError(f"--env-option {key}={value}: expected a number (default {default!r})")
+    for key, value in out.items():  # the config's own checks (finite numbers, integers, ranges)
+        try:
+            out[key] = getattr(config_cls(**{key: value}), key)  # 2.0 for an integer: 2
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"--env-option {key}={given[key]}: {e}") from None
+    try:
+        config_cls(**out)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--env-option: {e}") from None
+    return out

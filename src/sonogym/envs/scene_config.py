@@ -1,0 +1,55 @@
+"""What every task's env config shares: the patients, the ultrasound simulator, the
+observation, the device and the episode length (``SceneConfig``).
+
+Each task config (``NavigationConfig``, ``ReconstructionConfig``, ``SurgeryConfig``) subclasses
+it and adds its own fields, so every field stays a flat ``gymnasium.make`` / ``make_vec``
+keyword and a ``sonogym train --env-option KEY=VALUE`` key. A subclass redeclares a field only
+to change its default or narrow its type (``obs_mode``, surgery's ``episode_length``), and sets
+``obs_modes`` to the observation modes it knows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from sonogym.envs.base import check_number_fields
+from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """The settings every task's scene has (paper defaults). Every field is a ``make_vec``
+    keyword; ``__post_init__`` checks them and normalises ``patients`` and ``learned_nets``
+    to tuples. Subclasses call ``super().__post_init__()`` before their own checks."""
+
+    #: the ``obs_mode`` values the task knows (set by each task config)
+    obs_modes: ClassVar[tuple[str, ...]] = ()
+
+    patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
+    phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
+    simulator: SimulatorName = "physical"
+    learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
+    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
+    crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
+    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
+    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
+    obs_mode: str = "us"  # one of ``obs_modes``
+    device: str = "cpu"  # torch device of every tensor the env returns
+    episode_length: int = 300  # control steps (paper: navigation and reconstruction)
+    target_vertebra: str = "L4"  # the vertebra the task is about (goal, surface, pedicle)
+
+    def __post_init__(self) -> None:
+        check_number_fields(self)
+        object.__setattr__(
+            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
+        )
+        if self.obs_mode not in self.obs_modes:
+            raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {self.obs_modes}")
+        if self.episode_length < 1:
+            raise ValueError("episode_length must be >= 1")
+        if isinstance(self.patients, int | str):
+            object.__setattr__(self, "patients", (self.patients,))
+        object.__setattr__(self, "patients", tuple(self.patients))
+        object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))

@@ -32,6 +32,7 @@ def test_every_required_structure_is_present_with_its_id(small_phantom):
     present = set(torch.unique(small_phantom.labels).tolist())
     required = {
         L.SKIN, L.SUBCUTANEOUS_FAT, L.BODY_TRUNC, L.INTERVERTEBRAL_DISCS, L.SPINAL_CANAL,
+        L.SPINAL_LIGAMENTS, L.THORACOLUMBAR_FASCIA,
         86, 87, 88, 89,  # autochthon, iliopsoas
         31, 30, 29, 28, 27,  # L1-L5
         32, 26, 25,  # T12, S1, sacrum
@@ -99,10 +100,15 @@ def test_posterior_soft_tissue_over_the_laminae(small_phantom):
 
 
 def test_fat_thickness_follows_its_parameter():
+    # The fat thickens toward the flanks (fat_lateral), over the buttocks (gluteal, from L3
+    # down) and where it fills the midline furrow: fat_thickness is the layer beside the spine
+    # above L3, where those terms vanish.
     for fat in (0.008, 0.025):
-        p = make_phantom(2, PhantomParams(spacing=0.002, fat_thickness=fat))
-        z = p.landmarks.vertebra("L4").centre[2]
-        i, k = np.rint(p.world_to_voxel_np([0.06, 0, z])[[0, 2]]).astype(int)
+        p = make_phantom(2, PhantomParams(spacing=0.002, fat_thickness=fat, gluteal=0.0,
+                                          fat_lateral=0.0, midline_furrow=1.0))  # fmt: skip
+        f = p.landmarks.vertebra("L2")
+        i, k = np.rint(p.world_to_voxel_np(f.centre + [0.025, 0, 0])[[0, 2]]).astype(int)
+        z = f.centre[2]
         back = p.origin[1] + torch.arange(p.shape[1]) * p.spacing[1] < z * 0  # y < 0: the back
         n_fat = int(((p.labels[i, :, k] == L.SUBCUTANEOUS_FAT) & back).sum())
         assert abs(n_fat * 0.002 - fat) <= 0.004

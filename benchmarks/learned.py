@@ -6,7 +6,7 @@ Prints two tables.
    1, 10 and 100 env images of 200 x 150 (the 2-D env
    image; the net runs on its 112 x 80 input grid and the output is resized back), CT slices
    of the seed-0 phantom at 1 mm: slice and simulate time per batch (median of --repeats after
-   a warm-up), on CPU and on CUDA when present. Budget (issue 9): 100 images <= 30 ms on one
+   a warm-up), on CPU and on CUDA when present. Budget: 100 images <= 30 ms on one
    GPU (the paper: 111 ms for 100 on its GPU, 256 x 256, ~41 M-parameter nets).
 2. Navigation env steps/s (``simulator="learned"``, all 5 nets, US observations, KUKA arm)
    next to ``simulator="physical"``, on CPU, for --env-counts envs: how slowly RL with the

@@ -1,8 +1,8 @@
-"""Env-steps per second and resident memory against patients x envs (issue: many patients).
+"""Env-steps per second and resident memory against patients x envs (many patients).
 
     python benchmarks/population.py [--task navigation] [--patients 1 8 32 64]
         [--envs 32 128 512] [--steps 20] [--phantom-spacing 0.001] [--threads 1]
-        [--save pop.json] [--baseline old.json]
+        [--side-by-side 6] [--save pop.json] [--baseline old.json]
 
 Each (patients, envs) point runs in a fresh process (so resident memory is that point's
 alone): it builds ``make_vec(task, envs, patients=range(P))`` with the arm in the loop, takes
@@ -12,6 +12,12 @@ included). "MB per extra patient" is the slope of resident memory over the patie
 the smallest env count. Points whose memory, extrapolated from the slope so far, would pass
 ``--mem-limit`` (default: 80 % of the machine's memory) are skipped and marked so, not run.
 Phantoms are built once into the on-disk cache (the first run of a large P takes minutes).
+
+"Side by side" is the figure a user reads in ``top``: in one process, an env over 1 patient and
+then one over ``--side-by-side`` P patients (6 envs each, both alive, after a warm-up env on
+another patient that pays the one-time costs); resident memory per extra patient is
+((growth of the P-patient env) - (growth of the 1-patient env)) / (P - 1), printed next to the
+slicer's crop per patient.
 """
 
 from __future__ import annotations
@@ -74,6 +80,37 @@ def measure(task: str, patients: int, envs: int, steps: int, spacing: float) -> 
     }
 
 
+def side_by_side(task: str, patients: int, spacing: float) -> dict:
+    """Resident memory per extra patient with two envs alive in this process (module doc)."""
+    import torch
+
+    from sonogym.envs.registry import make_vec
+
+    def rss_mb() -> float:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+    def build(seeds):
+        env = make_vec(task, 6, patients=tuple(seeds), phantom_spacing=spacing)
+        env.reset(seed=0)
+        env.step(torch.zeros(env.action_space.shape))
+        return env
+
+    warm = build([patients])  # pays imports, tables and scratch once
+    r0 = rss_mb()
+    one = build([0])
+    r1 = rss_mb()
+    many = build(range(patients))
+    r2 = rss_mb()
+    crop = (many.scene.slicer.nbytes - one.scene.slicer.nbytes) / (patients - 1) / 2**20
+    del warm
+    return {
+        "patients": patients,
+        "rss_per_extra_patient_mb": ((r2 - r1) - (r1 - r0)) / (patients - 1),
+        "crop_per_patient_mb": crop,
+    }
+
+
 def run_point(args, patients: int, envs: int) -> dict:
     cmd = [
         sys.executable, __file__, "--point", args.task, str(patients), str(envs),
@@ -114,10 +151,21 @@ def main() -> None:
     ap.add_argument("--phantom-spacing", type=float, default=0.001, help="m (default 1 mm)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--mem-limit", type=float, default=None, help="MB (default 80 %% of RAM)")
+    ap.add_argument(
+        "--side-by-side", type=int, default=6, metavar="P",
+        help="patients of the one-process figure (0: skip it)",
+    )  # fmt: skip
     ap.add_argument("--save", type=Path, help="write the figures to this JSON file")
     ap.add_argument("--baseline", type=Path, help="compare with figures saved by --save")
     ap.add_argument("--point", nargs=5, help=argparse.SUPPRESS)  # internal: one point
+    ap.add_argument("--side-point", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.side_point:
+        import torch
+
+        torch.set_num_threads(args.threads)
+        print(json.dumps(side_by_side(args.task, args.side_by_side, args.phantom_spacing)))
+        return
     if args.point:
         import torch
 
@@ -170,10 +218,33 @@ def main() -> None:
             )
         print(line)
     if per_patient is not None:
-        print(f"resident memory per extra patient ({small} envs): {per_patient:.0f} MB")
+        print(f"resident memory per extra patient ({small} envs, fresh processes): "
+              f"{per_patient:.0f} MB")  # fmt: skip
+    side = None
+    if args.side_by_side > 1:
+        cmd = [
+            sys.executable, __file__, "--side-point", "--task", args.task,
+            "--side-by-side", str(args.side_by_side), "--threads", str(args.threads),
+            "--phantom-spacing", str(args.phantom_spacing),
+        ]  # fmt: skip
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        side = json.loads(out.stdout.strip().splitlines()[-1])
+        print(
+            f"resident memory per extra patient, side by side (1 and {side['patients']} "
+            f"patients, 6 envs each, one process): {side['rss_per_extra_patient_mb']:.1f} MB "
+            f"(slicer crop {side['crop_per_patient_mb']:.1f} MB per patient)"
+        )
     if args.save:
         args.save.write_text(
-            json.dumps({"header": header, "per_patient_mb": per_patient, "rows": rows}, indent=1)
+            json.dumps(
+                {
+                    "header": header,
+                    "per_patient_mb": per_patient,
+                    "side_by_side": side,
+                    "rows": rows,
+                },
+                indent=1,
+            )  # fmt: skip
         )
 
 

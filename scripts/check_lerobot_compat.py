@@ -121,8 +121,8 @@ def write_synthetic(root: Path) -> None:
         "action": {"dtype": "float32", "shape": [3], "names": ["dx", "dz", "dyaw"]},
     }
     rng = np.random.default_rng(0)
-    # a tiny file-size limit puts the episodes into several data files
-    with DatasetWriter(root, 30, features, task="navigate to L4", data_files_size_in_mb=0) as w:
+    # every episode goes into a data file of its own: several data files
+    with DatasetWriter(root, 30, features, task="navigate to L4") as w:
         for e in range(4):
             t = 6 + 3 * e
             w.add_episode(

@@ -1,6 +1,6 @@
 #!/bin/bash
-# The CPU training runs, evaluations and reports behind docs/agents.md ("CPU training runs")
-# and docs/results.md. About 4 h on one core of a 2-core machine; run from the repo root after
+# The CPU training runs, evaluations and reports behind docs/results.md, in order (many hours
+# on one core); run from the repo root after
 # `make install`. Each step can be rerun alone; `sonogym train --resume` continues a run.
 set -euo pipefail
 S=".venv/bin/sonogym"
@@ -14,12 +14,10 @@ $S train --task navigation --algo ppo $T --steps 4512 --obs-downsample 4 --proto
     --out runs/nav-ppo-small-lb-s0
 # Reconstruction, submodular PPO.
 $S train --task reconstruction --algo ppo $T --steps 4000 --out runs/recon-ppo-small-s0
-# Surgery from the privileged state (issue 14's first step): cpu preset (sigma ceiling
-# 0.05 -> 0.005 over 100k steps; state v2, unsafe penalty 0.3, bounded mean, staggered
-# episodes, workspace ball, statistics frozen at 30k; w5 = 50 per rad, the cpu preset's
-# since 2026-11-25, fifth session), 3 seeds, 84k steps (28.5 CPU min each on the fifth
-# session's machine, ~40 on the seventh's), then each continued to 100k steps, where the sigma
-# ceiling reaches its 0.005 floor (Table 1's runs; +7.5 CPU min each on the eighth's machine).
+# Surgery from the privileged state, --net small: cpu preset (sigma ceiling 0.05 -> 0.005 over
+# 100k steps; state v2, unsafe penalty 0.3, bounded mean, staggered episodes, workspace ball,
+# statistics frozen at 30k; w5 = 50 per rad), 3 seeds, 84k steps, then each continued to 100k
+# steps, where the sigma ceiling reaches its 0.005 floor (docs/results/surgery/).
 for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 84000 \
       --out runs/surg-state-w5-s$s
@@ -27,17 +25,16 @@ for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --seed $s --steps 100000 --resume \
       --out runs/surg-state-w5-s$s-100k
 done
-# ... and the runs that meet the <= 30 CPU min budget (eleventh session): the lean net
-# (small convs, [256, 128, 64] ReLU trunk), 120k steps, ~28 CPU min each. (Seed 0 was trained
-# to 100k and resumed to 120k; every schedule is fixed in steps.)
+# ... the lean net (small convs, [256, 128, 64] ReLU trunk), 120k steps, ~28 CPU min each
+# (docs/results/surgery-lean/).
 for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --net lean --seed $s --steps 120000 \
       --out runs/surg-state-lean-s$s
   $S eval --run runs/surg-state-lean-s$s --protocol idt --envs 50
   $S eval --run runs/surg-state-lean-s$s --protocol odt-patient --envs 50
 done
-# ... and with the distance penalty for unsafe steps (twelfth session; docs/envs.md): every
-# target met by every seed in <= 30 CPU min (28.9-29.8 at load 2).
+# ... and with the distance penalty for unsafe steps (docs/envs.md): Table 1's state row, every
+# target met by every seed in <= 30 CPU min (docs/results/surgery-dist/).
 for s in 0 1 2; do
   $S train --task surgery --algo ppo --obs-mode state --net lean \
       --env-option unsafe_distance_penalty=100 --seed $s --steps 120000 --out runs/surg-state-dist-s$s
@@ -45,32 +42,31 @@ for s in 0 1 2; do
   $S eval --run runs/surg-state-dist-s$s --protocol odt-patient --envs 50
 done
 # Surgery from the paper's observation (US volume pooled 2x to 5 x 25 x 18, + tracked pose),
-# PPO trained for the safety filter (the filter acts at test time only), current settings
-# (cpu preset, w5 = 50). The documented run was started for 130k steps and is reported at
-# its 51,968-step checkpoint (98 CPU min, the issue's budget); every schedule we set is fixed
-# in steps, so --steps 51968 ends at the same policy (the seventh session's run confirmed it).
+# PPO trained for the safety filter (the filter acts at test time only), cpu preset
+# (w5 = 50), 51,968 steps (~98 CPU min); every schedule is fixed in steps, so this ends at the
+# checkpoint of a longer run with the same settings.
 $S train --task surgery --algo ppo-sf --obs-downsample 2 --steps 51968 --seed 0 \
     --out runs/surg-img-w5-s0
-# Across a population (issue 19): PPO navigation on the 32 population phantoms (seeds 100-131,
-# apart from the held-out seeds 5-99), ~100 min; tested on them, on held-out phantoms 5-9 and
-# on the real TotalSegmentator subject.
+# Across a population: PPO navigation on the 32 population phantoms (seeds 100-131, apart
+# from the held-out seeds 5-99), ~100 min; tested on them, on held-out phantoms 5-9 and on the
+# real TotalSegmentator subject.
 $S train --task navigation --algo ppo --preset cpu --patients 100-131 --steps 58000 --seed 0 \
     --out runs/nav-pop32-s0
 $S eval --run runs/nav-pop32-s0 --envs 50
 $S eval --run runs/nav-pop32-s0 --envs 50 --protocol odt-patient --held-out 5
 $S eval --run runs/nav-pop32-s0 --envs 50 --patients tests/data/totalsegmentator_example \
     --name real-subject
-# ... and with the probe's heading observed too (eleventh session; the transverse view is
-# nearly mirror-symmetric). Reported at its agent_23168.pt checkpoint (within the 120 min on
-# the eleventh session's slower machine); the schedule does not depend on --steps.
+# ... and with the probe's heading observed too (the transverse view is nearly
+# mirror-symmetric); the schedule does not depend on --steps.
 $S train --task navigation --algo ppo --preset cpu --patients 100-131 --steps 23168 --seed 0 \
     --obs-mode us_heading --out runs/nav-pop32-head-s0
 $S eval --run runs/nav-pop32-head-s0 --envs 50
 $S eval --run runs/nav-pop32-head-s0 --envs 50 --protocol odt-patient --held-out 5
 $S eval --run runs/nav-pop32-head-s0 --envs 50 --patients tests/data/totalsegmentator_example \
     --name real-subject
-# ... and with the lean net (twelfth session), reported at agent_26496.pt, its last
-# checkpoint within 120 min (the documented run wrote one every 2,944 steps).
+# ... and with the lean net: the population result of docs/results.md (the documented run
+# wrote a checkpoint every 2,944 steps and is reported at agent_26496.pt, its last within
+# 120 min).
 $S train --task navigation --algo ppo --preset cpu --patients 100-131 --steps 26496 --seed 0 \
     --obs-mode us_heading --net lean --out runs/nav-pop32-head-lean-s0
 $S eval --run runs/nav-pop32-head-lean-s0 --envs 50

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Create ./.venv and install sonogym with its dev tools.
+# Create ./.venv and install sonogym with its dev tools, Ray and the Rerun viewer
+# (SONOGYM_EXTRAS=dev leaves out the optional ones: the viewer alone is ~750 MB).
 # On a machine without an NVIDIA GPU the CPU build of torch is installed first, so that no
 # dependency can pull the multi-GB CUDA build; on a GPU machine pip's normal torch is used.
 set -euo pipefail
@@ -17,5 +18,5 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
                 --index-url https://download.pytorch.org/whl/cpu
     fi
 fi
-$PIP install -e ".[dev,ray]"
+$PIP install -e ".[${SONOGYM_EXTRAS:-dev,ray,viewer}]"
 .venv/bin/python -c "import torch, sonogym; print('sonogym', sonogym.__version__, 'torch', torch.__version__)"

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -32,3 +35,34 @@ def _isolated_cache(tmp_path_factory):
 def small_phantom() -> Patient:
     """Seed-0 phantom at 2 mm (built once per test process)."""
     return make_phantom(0, SMALL)
+
+
+_HOLD = (
+    "import sys, time\n"
+    "from sonogym.runs import prepare_output\n"
+    "prepare_output(sys.argv[1], resume=False, force=False, kind=sys.argv[2])\n"
+    "print('holding', flush=True)\n"
+    "time.sleep(300)\n"
+)
+
+
+@pytest.fixture
+def folder_in_use():
+    """``start(folder, kind)``: another process prepares (and so locks) an output folder, as a
+    running command does, and keeps running until the test ends; returns its ``Popen``."""
+    procs = []
+    src = str(Path(__file__).resolve().parents[1] / "src")
+
+    def start(folder, kind: str) -> subprocess.Popen:
+        p = subprocess.Popen(
+            [sys.executable, "-c", _HOLD, str(folder), kind], stdout=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONPATH": src},
+        )  # fmt: skip
+        procs.append(p)
+        assert p.stdout.readline().strip() == "holding"
+        return p
+
+    yield start
+    for p in procs:
+        p.kill()
+        p.wait()

@@ -34,23 +34,27 @@ def phantom(
         bool, typer.Option(help="Write one combined label map instead of per-class masks.")
     ] = False,
     force: Annotated[
-        bool, typer.Option(help="Replace the subject folder --out if it exists.")
+        bool,
+        typer.Option(help="Replace a subject folder that sonogym phantom wrote in --out."),
     ] = False,
 ) -> None:
     """Build a procedural lumbar phantom and write ct.nii.gz + segmentations/ (+ preview.png).
-    An existing --out is never mixed into: it is refused unless --force replaces it."""
+    An existing --out is never mixed into: it is refused unless --force replaces it, which it
+    does only for a folder sonogym phantom wrote (its .sonogym marker) holding nothing else."""
     from sonogym.anatomy import PhantomParams, load_phantom, save_totalsegmentator
-    from sonogym.runs import prepare_output
+    from sonogym.runs import deleted_message, prepare_output
 
-    patient = load_phantom(seed, PhantomParams(spacing=spacing * 1e-3))
-    prepare_output(out, resume=False, force=force, what="subject", marker="ct.nii.gz")
-    save_totalsegmentator(patient, out, combined=combined)
-    typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
-    if preview:
-        from sonogym.viz.preview import save_preview
+    with prepare_output(out, resume=False, force=force, kind="subject") as folder:
+        if folder.deleted:
+            typer.echo(deleted_message(out, folder.deleted))
+        patient = load_phantom(seed, PhantomParams(spacing=spacing * 1e-3))
+        save_totalsegmentator(patient, out, combined=combined)
+        typer.echo(f"wrote {patient.name} ({'x'.join(map(str, patient.shape))} voxels) to {out}/")
+        if preview:
+            from sonogym.viz.preview import save_preview
 
-        path = save_preview(patient, out / "preview.png")
-        typer.echo(f"wrote {path}")
+            path = save_preview(patient, out / "preview.png")
+            typer.echo(f"wrote {path}")
 
 
 @app.command()
@@ -241,6 +245,10 @@ def train(
         bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
     ] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
+    checkpoint_every: Annotated[
+        int | None,
+        typer.Option(help="Env steps per env between checkpoints (default: about ten in all)."),
+    ] = None,
     protocol: Annotated[
         str | None,
         typer.Option(
@@ -259,7 +267,7 @@ def train(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
     _check_positive(("--steps", steps), ("--envs", envs), ("--obs-downsample", obs_downsample),
-                    ("--threads", threads))  # fmt: skip
+                    ("--threads", threads), ("--checkpoint-every", checkpoint_every))  # fmt: skip
     from sonogym.agents.presets import PRESETS
 
     if preset is not None and preset not in PRESETS:
@@ -293,6 +301,7 @@ def train(
         task, algo, envs=envs, steps=steps, seed=seed, out=out, patients=pats,
         simulator=simulator, obs_downsample=obs_downsample, net=net, env_kwargs=env_kwargs,
         preset=preset, threads=threads, device=device, resume=resume, force=force, log=typer.echo,
+        checkpoint_interval=checkpoint_every,
     )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 
@@ -336,9 +345,16 @@ def record(
                seed=seed, resume=resume, force=force, log=typer.echo)  # fmt: skip
 
 
+def _il_policies() -> str:
+    """The registered imitation-learning policies, for il-train's help."""
+    from sonogym.imitation.policies.registry import policy_names
+
+    return " or ".join(policy_names())
+
+
 @app.command("il-train")
 def il_train(
-    policy: Annotated[str, typer.Option(help="act or diffusion.")],
+    policy: Annotated[str, typer.Option(help=f"{_il_policies()}.")],
     data: Annotated[Path, typer.Option(help="Dataset folder (sonogym record).")],
     out: Annotated[Path, typer.Option(help="Run folder (checkpoints, config.json, tb/).")],
     steps: Annotated[int | None, typer.Option(help="Optimiser steps in total.")] = None,
@@ -361,13 +377,30 @@ def il_train(
         typer.Option(help="Continue the run in --out (options left out: the run's)."),
     ] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing run in --out.")] = False,
+    checkpoint_every: Annotated[
+        int, typer.Option(help="Optimiser steps between checkpoints (a final one always).")
+    ] = 5_000,
+    checkpoint_minutes: Annotated[
+        float,
+        typer.Option(
+            help="Also a checkpoint at least this often (minutes; 0: none), so a killed run "
+            "resumes from at most this far back; each replaces the previous such one."
+        ),
+    ] = 5.0,
 ) -> None:
-    """Train ACT or Diffusion Policy on an expert dataset; evaluate with sonogym eval --run."""
+    """Train an imitation-learning policy (ACT, Diffusion Policy, ...) on an expert dataset;
+    evaluate with sonogym eval --run."""
     from sonogym.agents.presets import cpu_threads
-    from sonogym.imitation.run import config_from_dict, make_config, read_run_config
+    from sonogym.imitation.policies.registry import get_policy, make_config
+    from sonogym.imitation.run import read_run_config
     from sonogym.imitation.train import ILTrainConfig, train_il
 
-    _check_positive(("--steps", steps), ("--batch-size", batch_size))
+    _check_positive(("--steps", steps), ("--batch-size", batch_size),
+                    ("--checkpoint-every", checkpoint_every))  # fmt: skip
+    if not checkpoint_minutes >= 0:
+        raise typer.BadParameter(
+            f"--checkpoint-minutes must be >= 0 (0: none), got {checkpoint_minutes}"
+        )
     old = read_run_config(out) if resume and (out / "config.json").is_file() else None
     if old is not None:  # what is left out continues as the run was trained
         seed = old["seed"] if seed is None else seed
@@ -385,7 +418,7 @@ def il_train(
         overrides["image_size"] = (int(h), int(w))
     try:
         if old is not None and not (overrides or preset_given) and old["policy"] == policy:
-            policy_config = config_from_dict(policy, old["policy_config"])
+            policy_config = get_policy(policy).config_cls.from_dict(old["policy_config"])
         else:
             policy_config = make_config(policy, preset, **overrides) if overrides else None
     except ValueError as e:
@@ -398,7 +431,8 @@ def il_train(
     cfg = ILTrainConfig(data=str(data), out=str(out), policy=policy, preset=preset,
                         policy_config=policy_config, steps=steps or 10_000,
                         batch_size=batch_size or 8, seed=1000 if seed is None else seed,
-                        device=device, resume=resume, force=force)  # fmt: skip
+                        device=device, resume=resume, force=force, save_every=checkpoint_every,
+                        save_minutes=checkpoint_minutes)  # fmt: skip
     res = train_il(cfg)
     typer.echo(f"trained {res.steps} steps (last loss {res.loss:.4f}) in {res.seconds:.0f} s; "
                f"evaluate with: sonogym eval --run {out}")  # fmt: skip
@@ -427,7 +461,8 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
     """``--env-option KEY=VALUE`` items -> env keyword arguments; values read as int, float,
     true/false/none or text (as ``sonogym sweep``'s grid), comma-separated for an option whose
     default is a tuple. Names an unknown option, a malformed item, a repeated key, a non-number
-    for a numeric option and an option that has its own flag."""
+    for a numeric option, an option that has its own flag, and whatever the task's config
+    refuses (NaN, inf or 1e309 for a number, 2.5 for an integer option: 2.0 is taken as 2)."""
     from sonogym.agents.sweep import parse_value
     from sonogym.envs.registry import get_task
 
@@ -435,9 +470,11 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
     fields = sorted(f.name for f in dataclasses.fields(config_cls))
     defaults = config_cls()
     out: dict[str, Any] = {}
+    given: dict[str, str] = {}  # the text as typed, for the messages
     for item in items or []:
         key, sep, value = item.partition("=")
         key = key.strip()
+        given[key] = value.strip()
         if not sep or not key or not value.strip():
             raise typer.BadParameter(f"--env-option {item!r}: write KEY=VALUE, e.g. w5=50")
         if key in _FLAGGED_ENV_OPTIONS:
@@ -460,22 +497,34 @@ def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
             raise typer.BadParameter(
                 f"--env-option {key}={value}: expected a number (default {default!r})"
             )
+    for key, value in out.items():  # the config's own checks (finite numbers, integers, ranges)
+        try:
+            out[key] = getattr(config_cls(**{key: value}), key)  # 2.0 for an integer: 2
+        except (TypeError, ValueError) as e:
+            raise typer.BadParameter(f"--env-option {key}={given[key]}: {e}") from None
+    try:
+        config_cls(**out)
+    except (TypeError, ValueError) as e:
+        raise typer.BadParameter(f"--env-option: {e}") from None
     return out
 
 
 def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
     """Patients from the command line: an integer is a phantom seed, ``A-B`` (digits, A <= B)
-    the seeds A..B inclusive, anything else a subject folder; None when none were given."""
+    the seeds A..B inclusive, ``DIR@N`` variant N of the subject in folder DIR and ``DIR@A-B``
+    its variants A..B (unless that is itself an existing path), anything else a subject folder;
+    None when none were given."""
     if not specs:
         return None
     out: list[int | str] = []
     for p in specs:
         m = re.fullmatch(r"(\d+)-(\d+)", p.strip())
-        if m:
-            lo, hi = int(m.group(1)), int(m.group(2))
+        v = None if Path(p).exists() else re.fullmatch(r"(.+)@(\d+)-(\d+)", p.strip())
+        if m or v:
+            lo, hi = (int(m.group(1)), int(m.group(2))) if m else (int(v[2]), int(v[3]))
             if lo > hi:
                 raise typer.BadParameter(f"patient range {p!r}: {lo} > {hi}; write it low-high")
-            out.extend(range(lo, hi + 1))
+            out.extend(range(lo, hi + 1) if m else (f"{v[1]}@{i}" for i in range(lo, hi + 1)))
         else:
             out.append(int(p) if p.lstrip("-").isdigit() else p)
     return tuple(out)
@@ -575,6 +624,12 @@ def sweep(
                     address=address,
                     max_concurrent=max_concurrent, resume=resume, force=force, log=typer.echo,
                     **options)  # fmt: skip
+    failed = [r for r in res.trials if r.status == "ERROR"]
+    if failed and len(failed) == len(res.trials):  # nothing trained: not a success
+        raise ValueError(
+            f"all {len(failed)} trials failed (first, {failed[0].name}: {failed[0].error}); "
+            f"see {res.out / 'sweep.md'}, fix the options and start again with --force"
+        )
     from sonogym.evaluation.curves import plot_curves
 
     runs = sorted(p for p in (res.out / "runs").glob("*") if (p / "config.json").is_file())
@@ -585,7 +640,17 @@ def sweep(
 
 @app.command("eval")
 def eval_(
-    run: Annotated[Path, typer.Option(help="Run directory written by `sonogym train`.")],
+    run: Annotated[
+        Path | None,
+        typer.Option(help="Run directory written by `sonogym train` or `sonogym il-train`."),
+    ] = None,
+    pretrained: Annotated[
+        str | None,
+        typer.Option(
+            help="A policy that ships with sonogym instead of --run ('list' lists them); "
+            "its files go to --out (default runs/pretrained-<name>)."
+        ),
+    ] = None,
     trials: Annotated[int, typer.Option(help="Episodes per controller.")] = 100,
     envs: Annotated[
         int | None, typer.Option(help="Parallel envs (default min(16, trials)).")
@@ -631,11 +696,33 @@ def eval_(
             "'custom' with --patients)."
         ),
     ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Folder for the table, episode log and figure (default: the run folder; "
+            "give one for a run you cannot write to)."
+        ),
+    ] = None,
 ) -> None:
-    """Evaluate a run's policy, the task's expert and a random policy; print and save the table,
-    the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
+    """Evaluate a run's policy (or a shipped one), the task's expert and a random policy; print
+    and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
+    from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
     from sonogym.evaluation.rl_eval import evaluate_run, format_table
+
+    if (run is None) == (pretrained is None):
+        raise typer.BadParameter("give --run RUN or --pretrained NAME (one of them)")
+    if pretrained == "list":
+        typer.echo(shipped.listing())
+        return
+    if pretrained is not None:
+        if checkpoint is not None:
+            raise typer.BadParameter("--checkpoint is for --run; a pretrained policy has one")
+        try:
+            run, checkpoint = shipped.pretrained_dir(pretrained), shipped.weights(pretrained)
+        except ValueError as e:
+            raise typer.BadParameter(str(e)) from None
+        out = out or Path(f"runs/pretrained-{pretrained}")
 
     if protocol not in PROTOCOLS:
         raise typer.BadParameter(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
@@ -651,15 +738,18 @@ def eval_(
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
             held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
-            name=name,
+            name=name, out=out,
             safety_filter={"mode": filter_mode, "threshold": filter_threshold},
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
-    typer.echo(format_table(results), nl=False)
     log = name or protocol or "custom"
     stem = "eval" if log == "idt" else f"eval-{log}"
-    typer.echo(f"wrote {run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png")
+    table = Path(out or run) / f"{stem}.md"
+    typer.echo(table.read_text() if table.is_file() else format_table(results), nl=False)
+    typer.echo(
+        f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"
+    )
 
 
 @app.command(context_settings={"allow_extra_args": True})
@@ -729,6 +819,126 @@ def report(
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
     typer.echo(f"wrote {md} and its tables and figures in {out}/")
+
+
+@app.command()
+def export(
+    run: Annotated[Path, typer.Option(help="Run folder written by `sonogym train`.")],
+    name: Annotated[str, typer.Option(help="Name of the shipped policy (e.g. navigation).")],
+    to: Annotated[
+        Path | None,
+        typer.Option(help="Folder of pretrained policies (default: the package's own)."),
+    ] = None,
+    checkpoint: Annotated[
+        Path | None, typer.Option(help="Checkpoint (default: the run's newest readable one).")
+    ] = None,
+    notes: Annotated[str, typer.Option(help="Text for the model card's notes.")] = "",
+) -> None:
+    """Make a run's policy a pretrained policy: its config, acting weights (safetensors) and a
+    model card from its checkpoint times and the evaluations in its folder."""
+    from sonogym.evaluation.pretrained import export_pretrained
+
+    dest = export_pretrained(run, name, to, checkpoint, notes)
+    typer.echo(f"wrote {dest}/ (config.json, policy.safetensors, model_card.json, model_card.md)")
+
+
+@app.command()
+def view(
+    task: Annotated[
+        str | None, typer.Option(help="Step this task's env: navigation, reconstruction, surgery.")
+    ] = None,
+    policy: Annotated[
+        str, typer.Option(help="Who acts: expert, random or a run folder (train / il-train).")
+    ] = "expert",
+    pretrained: Annotated[
+        str | None, typer.Option(help="A policy that ships with sonogym acts instead.")
+    ] = None,
+    patient: Annotated[
+        str | None,
+        typer.Option(help="A TotalSegmentator subject folder (or DIR@N, a variant of it)."),
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="Phantom seed of the patient (default 0).")
+    ] = None,
+    episode_seed: Annotated[int, typer.Option(help="Seed of the env's reset (the starts).")] = 0,
+    steps: Annotated[
+        int | None, typer.Option(help="Env steps to show (default: one episode).")
+    ] = None,
+    phantom_spacing: Annotated[
+        float | None, typer.Option(help="Voxel size of phantoms, mm (default: the env's 1).")
+    ] = None,
+    env_option: Annotated[
+        list[str] | None,
+        typer.Option(help="KEY=VALUE env option, e.g. episode_length=100; repeatable."),
+    ] = None,
+    run: Annotated[
+        Path | None,
+        typer.Option(help="Replay a run's saved evaluation episode (episodes/<protocol>.npz)."),
+    ] = None,
+    protocol: Annotated[str, typer.Option(help="--run: the episode log's name.")] = "idt",
+    controller: Annotated[
+        str | None,
+        typer.Option(help="--run: policy, expert or random (default: the policy)."),
+    ] = None,
+    dataset: Annotated[
+        Path | None, typer.Option(help="Replay an episode of a recorded LeRobot dataset.")
+    ] = None,
+    episode: Annotated[int, typer.Option(help="--run / --dataset: the episode to show.")] = 0,
+    save: Annotated[
+        Path | None,
+        typer.Option(help="Write the view to this .rrd file (default runs/view/<name>.rrd)."),
+    ] = None,
+    web: Annotated[
+        bool, typer.Option(help="Serve Rerun's web viewer on localhost instead (Ctrl-C stops).")
+    ] = False,
+    port: Annotated[
+        int, typer.Option(help="--web: the viewer's port (its data stream uses the next one).")
+    ] = 9090,
+) -> None:
+    """A 3-D view of an env stepped by a policy, a run's saved episode or a dataset's episode
+    in Rerun: the patient's skin and bones, the arms, the probe with its live image, the goal,
+    the drill and its planned corridor, reconstructed bone, images and rewards over time.
+    Needs the viewer extra: pip install 'sonogym[viewer]'."""
+    from sonogym.viewer import require_rerun
+
+    try:
+        require_rerun()
+    except ImportError as e:
+        typer.echo(f"sonogym: error: {e}", err=True)
+        raise SystemExit(1) from None
+    from sonogym.viewer.command import ViewRequest, run_view
+
+    replay = run is not None or dataset is not None
+    env_flags = {"--task": task, "--pretrained": pretrained, "--patient": patient,
+                 "--seed": seed, "--steps": steps, "--phantom-spacing": phantom_spacing,
+                 "--env-option": env_option,
+                 "--policy": None if policy == "expert" else policy}  # fmt: skip
+    given = [k for k, v in env_flags.items() if v is not None]
+    if replay and given:
+        raise typer.BadParameter(f"{', '.join(given)} step an env; --run / --dataset replay "
+                                 "what was saved: leave them out")  # fmt: skip
+    if patient is not None and seed is not None:
+        raise typer.BadParameter("give --patient or --seed, not both")
+    _check_positive(("--steps", steps))
+    options: dict[str, Any] = {}
+    if not replay:
+        if task is None and pretrained is None and policy in ("expert", "random"):
+            raise typer.BadParameter("give --task, --policy RUN or --pretrained NAME")
+        if task is not None:
+            options = parse_env_options(task, env_option)
+        elif env_option:
+            raise typer.BadParameter("--env-option needs --task (the options are the task's)")
+        if patient is not None or seed is not None:
+            options["patients"] = (seed,) if seed is not None else parse_patients([patient])
+        if phantom_spacing is not None:
+            options["phantom_spacing"] = phantom_spacing * 1e-3
+    req = ViewRequest(task=task, policy=policy, pretrained=pretrained, env_options=options,
+                      steps=steps, seed=episode_seed, run=run, protocol=protocol,
+                      controller=controller, dataset=dataset, episode=episode)  # fmt: skip
+    try:
+        run_view(req, save=save, web=web, web_port=port, log=typer.echo)
+    except (FileNotFoundError, IndexError, ValueError) as e:
+        raise typer.BadParameter(str(e)) from None
 
 
 @app.command("lb-data")

@@ -1,5 +1,6 @@
-"""How much memory the machine has free (for loaders and caches that size themselves), and
-handing freed heap pages back to the OS."""
+"""How much memory the machine has free (for loaders and caches that size themselves),
+refusing a plan whose memory or disk estimate does not fit (``check_fits``), and handing freed
+heap pages back to the OS."""
 
 from __future__ import annotations
 
@@ -24,6 +25,44 @@ def available_memory() -> int | None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+#: Share of the free memory or disk a command may plan to fill: the rest is left to the OS,
+#: other processes and the estimate's error.
+USABLE_FRACTION = 0.8
+
+
+class ResourceLimitError(ValueError):
+    """A command would need more memory or disk than there is; the message gives the estimate,
+    the limit and what to lower."""
+
+
+def free_memory(device: str = "cpu") -> int | None:
+    """Bytes free now on ``device``: ``available_memory()`` for the CPU, the CUDA device's
+    free memory (``torch.cuda.mem_get_info``) for a CUDA device; None if unknown."""
+    if str(device).startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            return None
+        return int(torch.cuda.mem_get_info(torch.device(device))[0])
+    return available_memory()
+
+
+def check_fits(needed: float, free: int | None, what: str, where: str, fix: str) -> None:
+    """Refuse ``what``, estimated at ``needed`` bytes, when it exceeds ``USABLE_FRACTION`` of
+    the ``free`` bytes of ``where`` ("memory", "disk under /path"); ``fix`` says what to
+    lower. Unknown ``free`` (None) passes."""
+    if free is None or needed <= USABLE_FRACTION * free:
+        return
+    raise ResourceLimitError(
+        f"{what} needs about {_size(needed)} of {where}, more than {USABLE_FRACTION:.0%} of "
+        f"the {_size(free)} free ({_size(USABLE_FRACTION * free)}); {fix}"
+    )
+
+
+def _size(n: float) -> str:
+    return f"{n / 2**40:.1f} TiB" if n >= 2**40 else f"{n / 2**30:.2f} GiB"
 
 
 @lru_cache(maxsize=1)

@@ -65,7 +65,8 @@ def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
     )
     assert given.rl.env_kwargs == {"w5": 5.0, "obs_mode": "state"}
     nav = resolve_train_config("navigation", "ppo", preset="cpu")
-    assert nav.rl.env_kwargs == {}  # tasks without CPU env options train on the env defaults
+    assert nav.rl.env_kwargs == {"imaging_randomization": True}  # navigation's CPU option
+    assert resolve_train_config("reconstruction", "ppo", preset="cpu").rl.env_kwargs == {}
     back = TrainConfig.from_dict(json.loads(json.dumps(cpu.to_dict())))
     assert back.rl.env_kwargs == {"w5": 50.0}  # config.json records it for eval and resume
 
@@ -108,8 +109,34 @@ def test_train_config_survives_config_json():
         (dict(steps=-5), "steps must be a positive integer"),
         (dict(obs_downsample=0), "obs_downsample must be a positive integer"),
         (dict(threads=0), "threads must be >= 1"),
+        (dict(net="huge"), "unknown net 'huge'"),
+        (dict(env_kwargs={"bogus": 1}), r"unknown NavigationConfig option\(s\) \['bogus'\]"),
+        (dict(env_kwargs={"w1": float("nan")}), "NavigationConfig.w1 must be a finite number"),
+        (dict(env_kwargs={"episode_length": 2.5}), "episode_length must be an integer"),
     ],
 )
 def test_nonsense_options_are_refused_not_defaulted(kw, message):
     with pytest.raises(ValueError, match=message):
         resolve_train_config("navigation", "ppo", preset="cpu", **kw)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (dict(rollouts=0), r"PPOParams.rollouts must be >= 1, got 0"),
+        (dict(mini_batches=2.5), r"PPOParams.mini_batches must be an integer, got 2.5"),
+        (dict(learning_rate=0.0), r"PPOParams.learning_rate must be > 0"),
+        (dict(learning_rate=math.inf), r"PPOParams.learning_rate must be a finite number"),
+        (dict(discount_factor=1.5), r"PPOParams.discount_factor must be in \[0, 1\]"),
+        (dict(ratio_clip=-0.2), r"PPOParams.ratio_clip must be >= 0"),
+    ],
+)
+def test_algorithm_tables_refuse_settings_no_run_trains_with(change, message):
+    import dataclasses
+
+    ppo = get_task("navigation").training.ppo
+    with pytest.raises(ValueError, match=message):
+        dataclasses.replace(ppo, **change)
+    a2c = get_task("navigation").training.a2c
+    with pytest.raises(ValueError, match="A2CParams.rollouts must be >= 1"):
+        dataclasses.replace(a2c, rollouts=-1)

@@ -86,3 +86,53 @@ def test_cli_resume_refuses_options_that_would_change_the_sweep(tmp_path):
     text = "".join(res.output.replace("│", "").split())
     assert res.exit_code != 0
     assert "leaveout--grid,--steps" in text and "sweep.jsondefinesit" in text
+
+
+def test_a_second_sweep_into_a_folder_in_use_is_refused(tmp_path, folder_in_use):
+    out = tmp_path / "sweep"
+    first = folder_in_use(out, "sweep")
+    with pytest.raises(FileExistsError, match=rf"{out} is in use .*pid {first.pid}"):
+        sweep("navigation", "ppo", out, seeds=1, log=lambda m: None, **TINY)
+    assert not (out / "sweep.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("grid", "message"),
+    [
+        ({"ppo.bogus": [1]}, "ppo has no setting 'bogus'"),
+        ({"env.bogus": [1]}, "unknown NavigationConfig option(s) ['bogus']"),
+        ({"env.episode_length": [20, -1]}, "episode_length must be >= 1"),
+        ({"ppo.rollouts": [0]}, "PPOParams.rollouts must be >= 1"),
+        ({"net": ["small", "huge"]}, "unknown net 'huge'"),
+        ({"ppo.learning_rate": [float("nan")]}, "learning_rate must be a finite number"),
+        ({"num_envs": [100_000_000]}, "sweep trials at once needs about"),
+    ],
+)
+def test_every_grid_point_is_checked_before_the_sweep_starts(grid, message, tmp_path):
+    """Each of these used to pass the up-front check and error in every trial (exit 0)."""
+    import ray
+
+    out = tmp_path / "sweep"
+    with pytest.raises(ValueError) as e:
+        sweep("navigation", "ppo", out, seeds=2, grid=grid, log=lambda m: None, **TINY)
+    assert message in str(e.value)
+    assert not out.exists() and not ray.is_initialized()  # nothing written, nothing started
+
+
+def test_cli_names_a_bad_grid_key_and_fails_when_every_trial_failed(tmp_path):
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    args = ["sweep", "--task", "navigation", "--seeds", "1", "--preset", "cpu", "--envs", "2",
+            "--steps", "16", "--threads", "1", "--patients", "0",
+            "--phantom-spacing", "2"]  # fmt: skip
+    res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a"), "--grid", "ppo.bogus=1"])
+    assert isinstance(res.exception, ValueError)  # main() prints it as one line, no traceback
+    assert "ppo has no setting 'bogus'" in str(res.exception)
+    # a value only the phantom refuses (0.5 m voxels) fails in the trial: all trials failed
+    out = tmp_path / "b"
+    res = CliRunner().invoke(app, [*args, "--out", str(out), "--grid", "env.phantom_spacing=0.5"])
+    assert res.exit_code != 0 and isinstance(res.exception, ValueError)
+    assert "all 1 trials failed" in str(res.exception) and "spacing" in str(res.exception)
+    assert (out / "sweep.md").is_file()  # the table of what failed is still written

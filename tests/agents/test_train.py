@@ -194,6 +194,14 @@ def test_cli_train_and_refusal(tmp_path):
         ("obs_mode=state", "use --obs-mode"),
         ("unsafe_penalty", "write KEY=VALUE"),
         ("unsafe_penalty=high", "expected a number"),
+        # what trained to NaN weights or was truncated in silence
+        ("w5=nan", "--env-option w5=nan: SurgeryConfig.w5 must be a finite number"),
+        ("w5=inf", "SurgeryConfig.w5 must be a finite number"),
+        ("w5=1e309", "--env-option w5=1e309: SurgeryConfig.w5 must be a finite number"),
+        ("episode_length=2.5", "SurgeryConfig.episode_length must be an integer, got 2.5"),
+        ("episode_length=1e309", "SurgeryConfig.episode_length must be an integer"),
+        ("action_scale=0.1,0.1,nan,1,1,1", "SurgeryConfig.action_scale[2] must be a finite"),
+        ("corridor_damping=0", "corridor_damping must be in (0, 1]"),  # the config's own range
     ],
 )
 def test_cli_env_option_refusals(option, message, tmp_path):
@@ -211,7 +219,14 @@ def test_cli_env_option_refusals(option, message, tmp_path):
 
 
 def test_env_option_values_follow_the_option_type():
+    from typer import BadParameter
+
     from sonogym.cli import parse_env_options
 
-    got = parse_env_options("surgery", ["action_scale=0.004,0.004,0.05", "corridor_damping=1"])
-    assert got == {"action_scale": (0.004, 0.004, 0.05), "corridor_damping": 1}
+    items = ["action_scale=0.004,0.004,0.05,1,1,1", "corridor_damping=1"]
+    got = parse_env_options("surgery", items)
+    assert got == {"action_scale": (0.004, 0.004, 0.05, 1, 1, 1), "corridor_damping": 1}
+    with pytest.raises(BadParameter, match="action_scale needs 6 positive values"):
+        parse_env_options("surgery", ["action_scale=0.004,0.004,0.05"])  # surgery has 6
+    got = parse_env_options("surgery", ["episode_length=20.0"])  # an integral float: 20
+    assert got == {"episode_length": 20} and type(got["episode_length"]) is int

@@ -16,7 +16,10 @@ from sonogym.envs.registry import get_task
 from sonogym.evaluation.curves import curve_over_seeds, discover_runs, plot_curves
 from sonogym.evaluation.episodes import load_log, log_path, save_log
 from sonogym.evaluation.report import build_report, table1_columns, task_metrics
-from sonogym.evaluation.trained import IL_KIND
+from sonogym.imitation.policies.registry import policy_for_algo
+from sonogym.imitation.processor import PolicyFeatures
+from sonogym.imitation.record import info_features
+from sonogym.imitation.run import RUN_KIND as IL_KIND
 
 TRIALS = 5
 T = 6
@@ -37,16 +40,23 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
     env = {"patients": [0, 1, 2, 3, 4], "simulator": simulator}
     if simulator == "learned":
         env["learned_nets"] = [0, 1, 2, 3]
-    if algo in ("act", "diffusion"):  # an `sonogym il-train` run's config
-        cfg = {"kind": IL_KIND, "task": task, "algo": algo, "seed": seed, "env_kwargs": env}
+    policy = policy_for_algo(algo)
+    if policy is not None:  # an `sonogym il-train` run's config (no checkpoint to load)
+        features = PolicyFeatures.from_info(info_features(task, len(get_task(task).action_names)))
+        cfg = {
+            "kind": IL_KIND, "task": task, "algo": algo, "seed": seed, "env_kwargs": env,
+            "policy": policy.name, "policy_config": policy.config_cls.cpu().to_dict(),
+            "train": {}, "features": features.to_dict(), "stats": {},
+        }  # fmt: skip
     else:  # a `sonogym train` run's (the keys evaluation reads; no checkpoint to load)
+        n_actions = len(get_task(task).action_names)
         cfg = {
             "task": task,
             "algo": algo,
             "seed": seed,
             "num_envs": 4,
             "obs_layout": {"keys": ["image"], "shapes": [[1, 50, 37]]},
-            "action_space": {"low": [-1.0], "high": [1.0]},
+            "action_space": {"low": [-1.0] * n_actions, "high": [1.0] * n_actions},
             "task_config": {"env_kwargs": env, "obs_downsample": 1, "obs_scales": {}},
         }
     (run / "config.json").write_text(json.dumps(cfg))

@@ -85,6 +85,7 @@ def test_protocol_eval_saves_episode_logs_and_refuses_held_out_runs(nav_run, tmp
     log = load_log(log_path(nav_run, "odt-patient"))
     assert log.meta["test_env"]["patients"] == [5] and log.meta["train_env"]["patients"] == [0]
     assert log.meta["protocol"] == "odt-patient" and log.meta["trials"] == 2
+    assert log.meta["num_envs"] == 2  # which env, so which patient, ran each episode
     assert json.loads((nav_run / "eval-odt-patient.json").read_text())["protocol"] == "odt-patient"
     for c in ("policy", "expert", "random"):
         m, tr = log.metrics[c], log.tracks[c]
@@ -113,3 +114,19 @@ def test_protocol_eval_saves_episode_logs_and_refuses_held_out_runs(nav_run, tmp
     b = build_report("navigation", [nav_run], tmp_path / "b", curves=False)
     assert (a.parent / "metrics.csv").read_text() == (b.parent / "metrics.csv").read_text()
     assert (a.parent / "bars.png").exists() and "(seed 0)" in a.read_text()
+
+
+def test_tables_give_the_median_and_the_share_within_a_metrics_tolerance():
+    import numpy as np
+
+    from sonogym.evaluation.rl_eval import distribution, format_table
+
+    errors = {
+        "position_error_mm": np.array([1.0, 5.0, 10.0, 12.0, 30.0]),
+        "angle_error_deg": np.array([1.0, 2.0, 3.0, 4.0, 90.0]),
+    }
+    d = distribution("navigation", errors)
+    assert d["position_error_mm"] == {"median": 10.0, "within": 0.6, "tolerance": 10.0}
+    assert d["angle_error_deg"] == {"median": 3.0}  # no tolerance declared
+    table = format_table({"policy": {"position_error_mm": (11.6, 10.6)}}, {"policy": d})
+    assert "11.600 ± 10.600 (median 10.000; 60 % within 10)" in table

@@ -8,8 +8,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
+from il_datasets import FEATURES, FPS, random_episodes, set_value, write
 
-from conftest import FEATURES, FPS, random_episodes, write
 from sonogym.imitation import lerobot_format as fmt
 from sonogym.imitation.reader import LeRobotFrames, load_stats, read_episodes
 from sonogym.imitation.writer import DatasetWriter, read_tasks
@@ -96,7 +96,8 @@ def test_info_json_tasks_and_episode_metadata(tmp_path):
     assert [(r["dataset_from_index"], r["dataset_to_index"]) for r in rows] == list(
         zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
     )
-    # each row points at the data file holding its frames, one row group per episode
+    # each row points at the data file holding its frames: a file of its own per episode
+    assert [(r["data/chunk_index"], r["data/file_index"]) for r in rows] == [(0, 0), (0, 1), (0, 2)]
     for r in rows:
         path = fmt.data_file(root, r["data/chunk_index"], r["data/file_index"])
         t = pq.read_table(path, columns=["episode_index", "index", "task_index"]).to_pydict()
@@ -104,7 +105,7 @@ def test_info_json_tasks_and_episode_metadata(tmp_path):
         assert [t["index"][i] for i in mine] == list(
             range(r["dataset_from_index"], r["dataset_to_index"])
         )
-    assert pq.ParquetFile(fmt.data_file(root, 0, 0)).num_row_groups == 3
+    assert pq.ParquetFile(fmt.data_file(root, 0, 0)).num_row_groups == 1
     schema = pq.read_schema(fmt.data_file(root, 0, 0))
     assert str(schema.field(IMG).type) == "struct<bytes: binary, path: string>"
     assert str(schema.field("action").type) == "fixed_size_list<element: float>[3]"
@@ -150,18 +151,62 @@ def test_stats_json_matches_the_data(tmp_path):
     assert loaded[RGB]["std"].shape == (3, 1, 1) and loaded["action"]["mean"].dtype == torch.float32
 
 
-def test_size_limit_splits_files_and_reader_spans_them(tmp_path):
+def test_appending_never_rewrites_earlier_data_and_the_reader_spans_the_files(tmp_path):
     eps = random_episodes(4)
-    write(tmp_path / "ds", eps, data_files_size_in_mb=0)
-    files = sorted((tmp_path / "ds" / "data").glob("*/*.parquet"))
+    root = tmp_path / "ds"
+    w = write(root, eps[:3])
+    files = sorted((root / "data").glob("*/*.parquet"))
+    before = {f: (f.stat().st_ino, f.read_bytes()) for f in files}
+    w.add_episode(eps[3])
+    # the earlier episodes' files are the same files, byte for byte (not rewritten and renamed)
+    assert {f: (f.stat().st_ino, f.read_bytes()) for f in files} == before
+    files = sorted((root / "data").glob("*/*.parquet"))
     assert [f.name for f in files] == [f"file-{i:03d}.parquet" for i in range(4)]
-    rows = read_episodes(tmp_path / "ds")
+    rows = read_episodes(root)
     assert [r["data/file_index"] for r in rows] == [0, 1, 2, 3]
-    ds = LeRobotFrames(tmp_path / "ds")
+    ds = LeRobotFrames(root)
     want = np.concatenate([e["action"] for e in eps])
     assert torch.equal(
         torch.stack([ds[i]["action"] for i in range(len(ds))]), torch.from_numpy(want)
     )
+
+
+def _as_one_data_file(root):
+    """Rewrite a dataset the way earlier writers laid it out: every episode in file-000 (one
+    row group each), meta/episodes pointing there."""
+    files = sorted((root / "data").glob("*/*.parquet"))
+    tables = [pq.read_table(f) for f in files]
+    with pq.ParquetWriter(root / "one.parquet", tables[0].schema) as w:
+        for t in tables:
+            w.write_table(t, row_group_size=len(t))
+    for f in files:
+        f.unlink()
+    (root / "one.parquet").rename(fmt.data_file(root, 0, 0))
+    for f in (root / fmt.EPISODES_DIR).glob("*/*.parquet"):
+        t = pq.read_table(f)
+        i = t.schema.get_field_index("data/file_index")
+        t = t.set_column(i, t.schema.field(i), [[0] * len(t)])
+        pq.write_table(t, f)
+
+
+def test_a_dataset_in_one_data_file_is_read_and_appended_to_without_rewriting_it(tmp_path):
+    eps = random_episodes(4)
+    root = tmp_path / "ds"
+    write(root, eps[:3])
+    _as_one_data_file(root)
+    one = fmt.data_file(root, 0, 0)
+    assert pq.ParquetFile(one).num_row_groups == 3
+    before = (one.stat().st_ino, one.read_bytes())
+    w = DatasetWriter(root, FPS, FEATURES, task="navigate", resume=True)
+    w.add_episode(eps[3])
+    assert (one.stat().st_ino, one.read_bytes()) == before
+    assert [r["data/file_index"] for r in read_episodes(root)] == [0, 0, 0, 1]
+    write(tmp_path / "clean", eps)
+    a, b = LeRobotFrames(root), LeRobotFrames(tmp_path / "clean")
+    assert len(a) == len(b)
+    for i in range(len(a)):
+        for k in b[i]:
+            assert torch.equal(a[i][k], b[i][k]), (i, k)
 
 
 class Killed(BaseException):
@@ -196,9 +241,8 @@ def test_interrupted_write_resumes_without_duplicates_or_gaps(tmp_path, monkeypa
     monkeypatch.undo()
     with pytest.raises(RuntimeError, match="resume=True"):
         w.add_episode(eps[2])
-    n2 = sum(len(e["action"]) for e in eps[:2])
-    on_disk = pq.read_metadata(root / "data/chunk-000/file-000.parquet").num_rows
-    assert on_disk == n2 + len(eps[2]["action"])  # episode 2's rows landed, uncommitted
+    on_disk = pq.read_metadata(root / "data/chunk-000/file-002.parquet").num_rows
+    assert on_disk == len(eps[2]["action"])  # episode 2's rows landed, uncommitted
     # the killed folder still reads as the two committed episodes
     assert len(LeRobotFrames(root)) == sum(len(e["action"]) for e in eps[:2])
     w = DatasetWriter(root, FPS, FEATURES, task="navigate", resume=True)
@@ -207,8 +251,10 @@ def test_interrupted_write_resumes_without_duplicates_or_gaps(tmp_path, monkeypa
         w.add_episode(ep)
     assert not list(root.rglob("*.tmp"))
     n = sum(len(e["action"]) for e in eps)
-    rows = pq.read_table(root / "data/chunk-000/file-000.parquet", columns=["index"])
-    assert rows.column("index").to_pylist() == list(range(n))  # no orphan, duplicate, gap
+    files = sorted((root / "data").glob("*/*.parquet"))
+    assert len(files) == 4
+    rows = [i for f in files for i in pq.read_table(f, columns=["index"])["index"].to_pylist()]
+    assert rows == list(range(n))  # no orphan, duplicate, gap
     write(tmp_path / "clean", eps)
     got, clean = _snapshot(root), _snapshot(tmp_path / "clean")
     assert got[0].keys() == clean[0].keys()
@@ -280,6 +326,68 @@ def test_bad_features_and_frames_are_refused(tmp_path):
     assert w.num_episodes == 0 and not (tmp_path / "ds" / "data").exists()
 
 
+# -2e6: twice the documented bound, reader.MAX_ABS_VALUE
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, 1e30, -2e6])
+@pytest.mark.parametrize(("key", "component"), [("action", 2), ("observation.state", 0)])
+def test_non_finite_or_absurd_values_are_refused_naming_file_episode_frame_column(
+    tmp_path, value, key, component
+):
+    """One such value trained a policy whose weights were all NaN, with exit 0."""
+    root = tmp_path / "ds"
+    write(root, random_episodes(3))  # lengths 4, 6, 8: frame 7 is episode 1's frame 3
+    path = set_value(root, key, 7, component, value)
+    with pytest.raises(fmt.DatasetFormatError) as e:
+        LeRobotFrames(root)
+    msg = str(e.value)
+    assert str(path) in msg and "episode 1, frame 3" in msg
+    assert f"column {key}[{component}] is" in msg and "re-record" in msg
+
+
+def test_values_within_the_bound_read_back_exactly(tmp_path):
+    from sonogym.imitation.reader import MAX_ABS_VALUE
+
+    assert MAX_ABS_VALUE == 1e6  # the bound the docs state
+    root = tmp_path / "ds"
+    write(root, random_episodes(3))
+    set_value(root, "action", 7, 2, 0.5 * MAX_ABS_VALUE)
+    assert LeRobotFrames(root).frame(7)["action"][2].item() == 0.5 * MAX_ABS_VALUE
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e30])
+def test_stats_json_with_non_finite_or_absurd_values_is_refused(tmp_path, value):
+    root = tmp_path / "ds"
+    write(root, random_episodes(2))
+    path = root / fmt.STATS_PATH
+    stats = json.loads(path.read_text())
+    stats["action"]["mean"][1] = value  # json writes NaN / Infinity, and reads them back
+    path.write_text(json.dumps(stats))
+    with pytest.raises(fmt.DatasetFormatError, match=r"stats.json: action/mean holds"):
+        load_stats(root)
+
+
+def test_an_info_json_that_does_not_describe_the_data_is_refused(tmp_path):
+    root = tmp_path / "ds"
+    write(root, random_episodes(2))
+    path = root / fmt.INFO_PATH
+    good = json.loads(path.read_text())
+    # another action shape: the data hold 3 values per frame
+    info = json.loads(path.read_text())
+    info["features"]["action"]["shape"] = [4]
+    info["features"]["action"]["names"] = ["a", "b", "c", "d"]
+    path.write_text(json.dumps(info))
+    with pytest.raises(fmt.DatasetFormatError, match=r"action/min has shape \(3,\).*needs \(4,\)"):
+        load_stats(root)
+    with pytest.raises(fmt.DatasetFormatError, match="'action' holds 3 values per frame.*\\[4\\]"):
+        LeRobotFrames(root)
+    # another robot's features: a camera the stats (and the data) do not have
+    info = json.loads(json.dumps(good))
+    info["features"]["observation.images.wrist"] = {"dtype": "image", "shape": [8, 8, 3],
+                                                    "names": fmt.IMAGE_NAMES}  # fmt: skip
+    path.write_text(json.dumps(info))
+    with pytest.raises(fmt.DatasetFormatError, match="no statistics of 'observation.images.wrist'"):
+        load_stats(root)
+
+
 def test_delta_indices_stack_history_and_chunks_with_pads(tmp_path):
     eps = random_episodes(2, lengths=[5, 6])
     write(tmp_path / "ds", eps)
@@ -321,7 +429,7 @@ def test_decoded_cache_equals_bytes_cache(tmp_path):
 def test_the_default_image_cache_reads_each_data_file_once(tmp_path, monkeypatch):
     import sonogym.imitation.reader as reader
 
-    write(tmp_path / "ds", random_episodes(6), data_files_size_in_mb=0)
+    write(tmp_path / "ds", random_episodes(6))
     files = sorted((tmp_path / "ds" / "data").glob("*/*.parquet"))
     assert len(files) > 2  # one data file per episode
     reads = []

@@ -7,17 +7,18 @@ import math
 
 import pytest
 import torch
+from il_datasets import BLOB_FEATURES
 
-from conftest import BLOB_FEATURES
 from sonogym.envs.policy import Policy
-from sonogym.imitation.act import ACTConfig, ACTPolicy
 from sonogym.imitation.buffers import ActionQueue, ObsHistory, TemporalEnsembler
-from sonogym.imitation.diffusion import DiffusionConfig, DiffusionPolicy
+from sonogym.imitation.policies.act import ACTConfig, ACTPolicy
+from sonogym.imitation.policies.diffusion import DiffusionConfig, DiffusionPolicy
 from sonogym.imitation.policy import ILPolicy, load_il_policy
 from sonogym.imitation.processor import Normalizer, PolicyFeatures
 from sonogym.imitation.reader import load_stats
-from sonogym.imitation.run import checkpoints, load_checkpoint
+from sonogym.imitation.run import IL_RUN, load_checkpoint
 from sonogym.imitation.train import ILTrainConfig, train_il
+from sonogym.runs import RunFolder
 
 CAM = "observation.images.cam"
 STATE = "observation.state"
@@ -50,6 +51,10 @@ TINY_DP = DiffusionConfig.cpu(
     lr_warmup_steps=1,
 )
 FEATS = PolicyFeatures.from_info(BLOB_FEATURES)
+
+
+def checkpoints(run):
+    return RunFolder(run, IL_RUN).checkpoints()
 
 
 def obs_batch(n, seed):

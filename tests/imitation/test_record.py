@@ -89,6 +89,60 @@ def test_interrupted_recording_resumes_without_duplicates(tmp_path, monkeypatch)
         rec.record("navigation", tmp_path / "cut", resume=True, envs=3, progress=False)
 
 
+@pytest.mark.parametrize("death", [KeyboardInterrupt(), OSError(28, "No space left on device")])
+def test_a_recording_interrupted_in_its_first_batch_resumes(tmp_path, monkeypatch, death):
+    from sonogym.imitation.writer import DatasetWriter
+
+    real = DatasetWriter.add_episode
+    calls = {"n": 0}
+
+    def dying(self, frames, task=None):
+        calls["n"] += 1
+        if calls["n"] == 2:  # Ctrl-C or a full disk in the first batch's second episode
+            raise death
+        return real(self, frames, task)
+
+    monkeypatch.setattr(DatasetWriter, "add_episode", dying)
+    with pytest.raises(type(death)):
+        _record(tmp_path / "cut", episodes=3, envs=2)
+    monkeypatch.setattr(DatasetWriter, "add_episode", real)
+    assert read_info(tmp_path / "cut")["total_episodes"] == 1
+    with pytest.raises(FileExistsError, match="--resume.*--force"):
+        _record(tmp_path / "cut", episodes=3, envs=2)
+    res = rec.record("navigation", tmp_path / "cut", resume=True, progress=False,
+                     log=lambda m: None)  # fmt: skip
+    assert res.episodes == 3
+    full = _record(tmp_path / "full", episodes=3, envs=2)
+    a, b = LeRobotFrames(tmp_path / "full"), LeRobotFrames(tmp_path / "cut")
+    assert full.frames == len(a) == len(b) == 120
+    for i in range(0, 120, 9):
+        assert torch.equal(a[i]["observation.images.us"], b[i]["observation.images.us"])
+        assert torch.equal(a[i]["action"], b[i]["action"])
+
+
+def test_a_recording_killed_before_its_first_episode_can_be_forced(tmp_path, monkeypatch):
+    from sonogym.imitation.writer import DatasetWriter
+
+    def killed(self, frames, task=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(DatasetWriter, "add_episode", killed)
+    with pytest.raises(KeyboardInterrupt):
+        _record(tmp_path / "cut", episodes=2, envs=1)
+    monkeypatch.undo()
+    logged = []
+    res = rec.record("navigation", tmp_path / "cut", episodes=2, envs=1, env_kwargs=NAV,
+                     force=True, progress=False, log=logged.append)  # fmt: skip
+    assert res.episodes == 2 and "--force: deleted meta/ from" in logged[0]
+
+
+def test_a_second_recording_into_a_folder_in_use_is_refused(tmp_path, folder_in_use):
+    first = folder_in_use(tmp_path / "d", "dataset")
+    with pytest.raises(FileExistsError, match=rf"d is in use .*pid {first.pid}"):
+        _record(tmp_path / "d", episodes=1, envs=1)
+    assert not (tmp_path / "d" / "meta").exists()
+
+
 def test_failed_expert_episodes_are_counted_not_written(tmp_path):
     # 3 steps are too few for the expert to reach the goal: every episode fails
     with pytest.raises(RuntimeError, match="failed every episode"):

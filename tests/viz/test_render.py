@@ -52,7 +52,7 @@ def test_image_command(tmp_path, monkeypatch, small_phantom):
 
     seeds = []
 
-    def fake_load_phantom(seed, params=None):  # the session's 2 mm phantom, not a fresh build
+    def fake_load_phantom(seed, params=None):  # the test session's 2 mm phantom, not a fresh build
         seeds.append((seed, params.spacing))
         return small_phantom
 

@@ -1,10 +1,10 @@
-"""Checkpoints of a run directory written by ``sonogym.agents.train``: find them, load the
-trained networks, and act with them in an env as a ``Policy`` (``rl_policy``)."""
+"""Checkpoints of a run directory written by ``sonogym.agents.train``: find them (``RL_RUN``,
+the RL kind of ``sonogym.runs.RunFolder``), load the trained networks, and act with them in an
+env as a ``Policy`` (``rl_policy``)."""
 
 from __future__ import annotations
 
-import re
-import warnings
+import math
 from pathlib import Path
 
 import gymnasium as gym
@@ -12,56 +12,68 @@ import numpy as np
 import torch
 
 from sonogym.agents.adapter import ObsLayout, SkrlEnvAdapter
-from sonogym.agents.networks import SharedActorCritic, log_std_ceiling, make_models
+from sonogym.agents.networks import SharedActorCritic, log_std_ceiling, make_models, net_size
 from sonogym.envs.policy import StatelessPolicy
-from sonogym.runs import CheckpointError, load_weights
+from sonogym.runs import (
+    CheckpointError,
+    RunFolder,
+    RunKind,
+    atomic_write_bytes,
+    lists_to_tuples,
+    load_weights,
+)
 
-_CKPT = re.compile(r"agent_(\d+)\.pt$")
+#: The modules an exported checkpoint keeps: what acting needs (no optimiser, no value).
+ACTING_MODULES = ("policy", "obs_standardizer", "cost_critic")
 
 
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
     """An agent checkpoint (skrl's ``{module name: state}`` dict), read without unpickling
-    code (``weights_only=True``): tensors, numbers, strings and containers only."""
+    code (``weights_only=True``): tensors, numbers, strings and containers only. A
+    ``.safetensors`` file (``export_acting_weights``) holds the acting modules' tensors."""
     path = Path(path)
-    state = load_weights(path, device, "agent checkpoint")
+    if path.suffix == ".safetensors":
+        state = _read_safetensors(path, device)
+    else:
+        state = load_weights(path, device, "agent checkpoint")
     if not isinstance(state, dict) or "policy" not in state:
         raise CheckpointError(f"{path} is not an agent checkpoint (no 'policy' entry)")
     return state
 
 
-def checkpoints(out: str | Path) -> list[tuple[int, Path]]:
-    """(env steps, path) of every ``agent_<t>.pt`` in ``out/checkpoints``, newest first."""
-    found = []
-    for p in (Path(out) / "checkpoints").glob("agent_*.pt"):
-        m = _CKPT.search(p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    return sorted(found, reverse=True)
+def _read_safetensors(path: Path, device) -> dict:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    if not path.is_file():
+        raise FileNotFoundError(f"agent weights {path} not found")
+    try:
+        flat = load_file(str(path), device=str(device))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CheckpointError(f"{path} is not a readable safetensors file ({e})") from None
+    state: dict[str, dict[str, torch.Tensor]] = {}
+    for key, value in flat.items():
+        module, sep, name = key.partition("/")
+        if not sep:
+            raise CheckpointError(f"{path}: tensor {key!r} names no module (module/parameter)")
+        state.setdefault(module, {})[name] = value
+    return state
 
 
-def latest_checkpoint(out: str | Path) -> tuple[Path, int] | None:
-    """(path, env steps) of the newest ``agent_<t>.pt`` in ``out/checkpoints``, or None."""
-    found = checkpoints(out)
-    return (found[0][1], found[0][0]) if found else None
+def export_acting_weights(checkpoint: str | Path, dest: str | Path) -> Path:
+    """The acting modules (``ACTING_MODULES``) of ``checkpoint`` as one safetensors file at
+    ``dest`` (tensors ``<module>/<parameter>``; nothing to unpickle), written atomically."""
+    from safetensors.torch import save
 
-
-def latest_readable_checkpoint(out: str | Path, warn=None) -> tuple[Path, int] | None:
-    """(path, env steps) of the newest checkpoint that reads (``read_checkpoint``), or None;
-    each unreadable newer one (a save killed half-way by an older version, a corrupt file) is
-    skipped with a warning naming it (``warn``: a callable taking the message; default
-    ``warnings.warn``)."""
-    for t, p in checkpoints(out):
-        try:
-            read_checkpoint(p)
-        except (CheckpointError, OSError) as e:
-            msg = f"skipping unreadable checkpoint: {e}"
-            if warn is None:
-                warnings.warn(msg, stacklevel=2)
-            else:
-                warn(msg)
-            continue
-        return p, t
-    return None
+    state = read_checkpoint(checkpoint)
+    flat = {
+        f"{m}/{k}": v.detach().cpu().contiguous()
+        for m in ACTING_MODULES
+        if m in state
+        for k, v in state[m].items()
+        if isinstance(v, torch.Tensor)
+    }
+    return atomic_write_bytes(dest, save(flat))
 
 
 def load_policy(
@@ -78,10 +90,7 @@ def load_policy(
     cfg = run_config(run)
     check_obs_version(cfg, run / "config.json")  # reading its logs (report) needs no check
     if checkpoint is None:
-        found = latest_readable_checkpoint(run)
-        if found is None:
-            raise FileNotFoundError(f"no readable checkpoints/agent_<t>.pt in {run}")
-        checkpoint = found[0]
+        checkpoint = _newest(run)
     layout = ObsLayout(
         tuple(cfg["obs_layout"]["keys"]),
         tuple(tuple(s) for s in cfg["obs_layout"]["shapes"]),
@@ -93,16 +102,34 @@ def load_policy(
     model = make_models(cfg["task"], layout, box, device, run_net(cfg), bounded_mean=bounded)[
         "policy"
     ]
-    model.load_state_dict(read_checkpoint(checkpoint, device)["policy"])
-    set_log_std_ceiling(model, cfg["task_config"], checkpoint_step(checkpoint))
+    load_module(model, checkpoint, "policy", device)
+    set_log_std_ceiling(model, cfg["task_config"], RL_RUN.step_of(checkpoint))
     model.eval()
     return model, cfg
 
 
-def checkpoint_step(path: str | Path) -> int | None:
-    """The env step per env of ``agent_<t>.pt`` (None for another name)."""
-    m = _CKPT.search(Path(path).name)
-    return int(m.group(1)) if m else None
+def _newest(run: Path) -> Path:
+    return RunFolder(run, RL_RUN).require_checkpoint().path
+
+
+def load_module(module: torch.nn.Module, checkpoint: str | Path, key: str, device) -> None:
+    """Load entry ``key`` of an agent checkpoint into ``module``; a checkpoint without it, or
+    whose tensors do not fit the module the run's config.json describes (a config.json edited,
+    or copied from another run), raises ``CheckpointError`` naming both."""
+    state = read_checkpoint(checkpoint, device)
+    if key not in state:
+        raise CheckpointError(
+            f"{checkpoint} holds no {key!r} (it holds {sorted(state)}), which the run's "
+            "config.json asks for: config.json was edited or is another run's; restore it"
+        )
+    try:
+        module.load_state_dict(state[key])
+    except RuntimeError as e:
+        detail = " ".join(str(e).split())[:300]
+        raise CheckpointError(
+            f"{checkpoint}: its {key!r} does not fit the network the run's config.json "
+            f"describes ({detail}); config.json was edited or is another run's; restore it"
+        ) from None
 
 
 def set_log_std_ceiling(model: SharedActorCritic, task_config: dict, step: int | None) -> None:
@@ -134,11 +161,11 @@ def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, devi
     if cfg["algo"] != "ppo-sf":
         raise ValueError(f"{run} is a {cfg['algo']} run; only ppo-sf runs have a cost critic")
     if checkpoint is None:
-        checkpoint = latest_readable_checkpoint(run)[0]
+        checkpoint = _newest(run)
     critic = CostCritic(
         cfg["task"], policy.encoder.layout, policy.action_space, device, run_net(cfg)
     )
-    critic.load_state_dict(read_checkpoint(checkpoint, device)["cost_critic"])
+    load_module(critic, checkpoint, "cost_critic", device)
     critic.eval()
     return critic, *filter_settings(cfg["task_config"])
 
@@ -148,16 +175,81 @@ RUN_CONFIG_KEYS = ("task", "algo", "seed", "obs_layout", "action_space", "task_c
 
 
 def run_config(run: str | Path) -> dict:
-    """A run's ``config.json``, with a clear error if it is missing, malformed or incomplete."""
+    """A run's ``config.json``, with a clear error if it is missing, malformed, incomplete or
+    hand-edited into something no run has (``check_run_config``)."""
+    from sonogym.envs.registry import check_task_name
     from sonogym.runs import read_json
 
-    cfg = read_json(Path(run) / "config.json", "`sonogym train` run folder", RUN_CONFIG_KEYS)
-    missing = [
-        k for k in ("env_kwargs", "obs_downsample", "obs_scales") if k not in cfg["task_config"]
-    ]
-    if missing:
-        raise ValueError(f"{Path(run) / 'config.json'}: task_config lacks {missing}")
+    path = Path(run) / "config.json"
+    cfg = read_json(path, "`sonogym train` run folder", RUN_CONFIG_KEYS)
+    check_task_name(cfg["task"], path)  # it names files (eval, plots)
+    try:
+        check_run_config(cfg)
+    except ValueError as e:
+        raise ValueError(
+            f"{path}: {e}; restore the config.json the run wrote, or retrain the run"
+        ) from None
     return cfg
+
+
+def check_run_config(cfg: dict) -> None:
+    """Refuse, naming the key, what evaluation would otherwise trip over late: an unknown task
+    or an algorithm the task has no run of, values of the wrong type, an observation layout or
+    action box that is not a list of the right sizes, and env options the task's env refuses."""
+    from sonogym.envs.registry import check_algo, env_config
+
+    def expect(ok: bool, what: str) -> None:
+        if not ok:
+            raise ValueError(what)
+
+    for key in ("task", "algo"):
+        expect(isinstance(cfg[key], str), f"{key} must be a name, got {cfg[key]!r}")
+    spec = check_algo(cfg["task"], cfg["algo"])
+    expect(_is_int(cfg["seed"]), f"seed must be an integer, got {cfg['seed']!r}")
+    tc = cfg["task_config"]
+    expect(isinstance(tc, dict), f"task_config must be an object, got {tc!r}")
+    missing = [k for k in ("env_kwargs", "obs_downsample", "obs_scales") if k not in tc]
+    expect(not missing, f"task_config lacks {missing}")
+    expect(isinstance(tc["env_kwargs"], dict), "task_config.env_kwargs must be an object")
+    env_config(cfg["task"], lists_to_tuples(tc["env_kwargs"]))
+    expect(
+        _is_int(tc["obs_downsample"]) and tc["obs_downsample"] >= 1,
+        f"task_config.obs_downsample must be an integer >= 1, got {tc['obs_downsample']!r}",
+    )
+    scales = tc["obs_scales"]
+    expect(
+        isinstance(scales, dict) and all(_is_number(v) for v in scales.values()),
+        f"task_config.obs_scales must map entries to finite numbers, got {scales!r}",
+    )
+    net_size(run_net(cfg))
+    layout = cfg["obs_layout"]
+    keys, shapes = (
+        (layout.get("keys"), layout.get("shapes")) if isinstance(layout, dict) else (0, 0)
+    )
+    expect(
+        isinstance(keys, list)
+        and isinstance(shapes, list)
+        and len(keys) == len(shapes) > 0
+        and all(isinstance(k, str) for k in keys)
+        and all(isinstance(sh, list) and all(_is_int(n) and n >= 1 for n in sh) for sh in shapes),
+        "obs_layout must hold 'keys' (names) and 'shapes' (lists of sizes >= 1), one per key",
+    )
+    box, dim = cfg["action_space"], len(spec.action_names)
+    for side in ("low", "high"):
+        v = box.get(side) if isinstance(box, dict) else None
+        expect(
+            isinstance(v, list) and len(v) == dim and all(_is_number(x) for x in v),
+            f"action_space.{side} must list {dim} finite numbers ({cfg['task']} actions), "
+            f"got {v!r}",
+        )
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return _is_int(v) or (isinstance(v, float) and math.isfinite(v))
 
 
 def check_obs_version(cfg: dict, where: str | Path) -> None:
@@ -221,9 +313,22 @@ def rl_policy(
         standardize_vectors=tc.get("standardize_vectors", False),
     )  # fmt: skip
     if adapter.standardizer is not None:
-        path = checkpoint or latest_readable_checkpoint(run)[0]
-        adapter.standardizer.load_state_dict(read_checkpoint(path, device)["obs_standardizer"])
+        load_module(adapter.standardizer, checkpoint or _newest(run), "obs_standardizer", device)
     if cfg["algo"] == "ppo-sf":
         critic, threshold, mode = load_cost_critic(run, checkpoint, device)
         return RLPolicy(model, adapter, critic, threshold, mode)
     return RLPolicy(model, adapter)
+
+
+#: How ``sonogym.runs.RunFolder`` reads an RL run: checkpoints ``agent_<t>.pt`` (t: env steps
+#: per env), config.json without a "kind".
+RL_RUN = RunKind(
+    name="rl",
+    command="sonogym train",
+    marker=None,
+    checkpoint_name=r"agent_(\d+)\.pt",
+    checkpoint_hint="agent_<t>.pt",
+    read_checkpoint=read_checkpoint,
+    read_config=run_config,
+    env_kwargs_key=("task_config", "env_kwargs"),
+)

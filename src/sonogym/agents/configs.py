@@ -29,7 +29,8 @@ from typing import Any
 
 import torch
 
-from sonogym.envs.registry import check_algo, get_task
+from sonogym.envs.base import check_number_fields
+from sonogym.envs.registry import check_algo, env_config, get_task
 from sonogym.envs.spec import A2CParams, PPOParams, SafetyParams
 from sonogym.runs import lists_to_tuples, to_jsonable
 
@@ -135,6 +136,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_algo(self.task, self.algo)
+        check_number_fields(self.rl)  # NaN, inf, 2.5 envs; 2.0 envs becomes 2
         for name in ("num_envs", "timesteps", "obs_downsample"):
             v = getattr(self.rl, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -157,6 +159,10 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and v < 1:
                 raise ValueError(f"{name} must be >= 1 env step, got {v}")
+        from sonogym.agents.networks import net_size
+
+        net_size(self.rl.net)
+        env_config(self.task, self.rl.env_kwargs)  # every env option, as the env will read it
 
     @property
     def steps(self) -> int:

@@ -33,7 +33,7 @@ k8 kernels do not.
 
 ``net="lean"`` has the small convs, a [256, 128, 64] trunk and ReLU in every MLP: about half
 the PPO update's multiply-adds of ``small`` and a cheaper activation, for surgery state runs
-on one CPU core (``NET_SIZES``; docs/results.md).
+on one CPU core, where the update is compute-bound (``NET_SIZES``).
 """
 
 from __future__ import annotations
@@ -63,8 +63,9 @@ class NetSize:
 
 
 #: ``lean``: the small convs, a trunk half as wide and ReLU instead of ELU. Why: on one CPU
-#: core a surgery state run's PPO update is compute-bound (GEMMs 57 %, ELU 20 % of it), and a
-#: 100 k-step run took 39.7 CPU min with ``small`` against the 30 min budget (docs/results.md).
+#: core a surgery state run's PPO update is compute-bound (GEMMs 57 %, ELU 20 % of it), so a
+#: narrower trunk and a cheaper activation roughly halve it (benchmarks/README.md, "RL
+#: training (CPU)").
 NET_SIZES: dict[str, NetSize] = {
     "paper": NetSize("paper", TRUNK_MLP, nn.ELU),
     "small": NetSize("small", TRUNK_MLP, nn.ELU),
@@ -263,9 +264,10 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         Why: the env clips actions, so a mean outside the box acts like the box's edge and
         gets no learning signal once sigma is small (samples never fall inside). A collapsed
         surgery state run had its rotation means at 0.1-1.05 rad against a 0.1 rad box in
-        60-85 % of steps. Off by default (0): at 10, that seed trained well but another
-        still collapsed and a third stalled (docs/results.md). The penalty is 0 inside the
-        box, so it changes nothing for a mean that stays there."""
+        60-85 % of steps. Off by default (0): it kept the means in the box but did not stop
+        other seeds from collapsing or stalling, and ``bounded_mean`` keeps the means in the
+        box by construction. The penalty is 0 inside the box, so it changes nothing for a mean
+        that stays there."""
         excess = torch.relu(mean - self.action_high) - torch.relu(self.action_low - mean)
         extra = (2 * self.mean_bound_penalty / mean.shape[0]) * excess
         return lambda grad: grad + extra
@@ -279,9 +281,9 @@ def squash_into_box(raw: torch.Tensor, low: torch.Tensor, high: torch.Tensor) ->
     Why: the env clips actions, so a mean outside the box acts like the box's edge, and once
     sigma is small against the box no sample falls inside: that output gets no learning
     signal and drifts. Surgery's rotation box is +-0.1 rad against sigma 0.05 -> 0.005; in
-    its state runs the rotation means lay outside the box in 60-85 % of steps (up to 1.05
-    rad) and 2 of 6 seeds lost the tilt (docs/results.md). The sampled actions stay Gaussian
-    around this mean (the env still clips them)."""
+    its state runs without the squash the rotation means lay outside the box in 60-85 % of
+    steps (up to 1.05 rad) and the tilt ran away. The sampled actions stay Gaussian around
+    this mean (the env still clips them)."""
     centre, half = (high + low) / 2, (high - low) / 2
     return centre + half * torch.tanh((raw - centre) / half)
 

@@ -17,14 +17,12 @@ paper's w_i - delta), in one of two modes (``filter_mode``, a run setting that `
   tracked tip is already outside the safe set (``info["safe"]``: the tracked drill against
   the pre-operative plan, which a navigated system knows; the policy does not observe it).
 
-Why ours: the paper's rule stalls a deterministic policy for good. The image-trained PPO
-(runs/surg-img-sf-anneal-s0, 100 episodes, docs/results.md) crosses the corridor's entrance
-plane about 17 mm off its axis in every episode and slides in from the side (3-4 % of its
-steps unsafe). Zeroing the crossing action leaves the drill above the plane, where the policy
-proposes the same action again: 77 of 100 drills stopped ~51 mm short; in the other 23 the
-critic let one crossing through, and from then on every action was zeroed, so the drill
-stayed outside (safe ratio 78.0 % against the unfiltered policy's 96.8 %). The search filter
-backs off or moves sideways instead. The filter is not applied while training (reference).
+Why ours: the paper's rule stalls a deterministic policy for good. Zeroing an action leaves
+the drill where it is, and there the policy proposes the same action again; a drill that the
+critic once let outside the safe set has every later action zeroed, so it stays outside. The
+search filter backs off or moves sideways instead, and never holds a drill that is already
+outside (there the policy's action is the way back; docs/agents.md, ppo-sf). The filter is
+not applied while training (reference).
 
 ``CostCritic``: its own surgery encoder (conv over the volume, position and quaternion MLPs,
 [512, 256, 128]) and an action MLP 6 -> [128, 128, 64], concatenated -> [256, 128] ELU -> 1.

@@ -33,7 +33,13 @@ from pathlib import Path
 from typing import Any
 
 from sonogym.agents.configs import TrainConfig, resolve_train_config
-from sonogym.runs import atomic_write_json, atomic_write_text, prepare_output, read_json
+from sonogym.runs import (
+    atomic_write_json,
+    atomic_write_text,
+    deleted_message,
+    prepare_output,
+    read_json,
+)
 
 RAY_HINT = "sonogym sweep needs Ray Tune: pip install 'sonogym[ray]' (or pip install 'ray[tune]')"
 SWEEP_FILE = "sweep.json"
@@ -90,13 +96,20 @@ def check_key(key: str) -> None:
 
 
 def apply(base: TrainConfig, params: dict[str, Any]) -> TrainConfig:
-    """``base`` with a trial's seed and grid values."""
+    """``base`` with a trial's seed and grid values, checked as a run's config is (an unknown
+    setting, a value the algorithm's table, the task config or the env config refuses:
+    ``ValueError`` naming it), without building anything."""
     rl = base.rl
     for key, v in params.items():
         if key == "seed":
             continue
         head, _, field = key.partition(".")
         if head in ("ppo", "a2c"):
+            names = [f.name for f in dataclasses.fields(getattr(rl, head))]
+            if field not in names:
+                raise ValueError(
+                    f"grid key {key!r}: {head} has no setting {field!r}; its settings are {names}"
+                )
             table = dataclasses.replace(getattr(rl, head), **{field: v})
             rl = dataclasses.replace(rl, **{head: table})
         elif head == "env":
@@ -104,6 +117,28 @@ def apply(base: TrainConfig, params: dict[str, Any]) -> TrainConfig:
         else:
             rl = dataclasses.replace(rl, **{key: v})
     return dataclasses.replace(base, rl=rl, seed=int(params.get("seed", base.seed)))
+
+
+def check_sweep_memory(configs: list[TrainConfig], trials: int, max_concurrent: int | None):
+    """Refuse a sweep whose trials running at once (``max_concurrent``, else as many as the
+    CPUs hold at each trial's threads) would not fit in memory with their envs, the largest
+    grid point counted for each (each trial checks its own training memory when it starts)."""
+    import os
+
+    from sonogym.envs.footprint import config_memory
+    from sonogym.envs.registry import env_config, get_task
+    from sonogym.memory import check_fits, free_memory
+
+    threads = max(c.threads or 1 for c in configs)
+    at_once = min(trials, max_concurrent or max(1, (os.cpu_count() or 1) // threads))
+    need = max(
+        config_memory(get_task(c.task).memory, c.rl.num_envs, env_config(c.task, c.rl.env_kwargs))
+        for c in configs
+    )
+    check_fits(
+        need * at_once, free_memory(configs[0].device), f"{at_once} sweep trials at once",
+        "memory", "lower --max-concurrent, the envs per trial (--envs) or the patients",
+    )  # fmt: skip
 
 
 def trial_name(task: str, algo: str, params: dict[str, Any]) -> str:
@@ -127,8 +162,9 @@ def sweep(
 ) -> SweepResult:
     """Run the sweep (see the module doc). ``train_options``: ``resolve_train_config``'s
     (``preset``, ``envs``, ``steps``, ``device``, ``env_kwargs``, ...), for every trial.
-    ``max_concurrent``: trials running at once (None: as many as the CPUs/GPUs hold)."""
-    ray, tune = import_ray()
+    ``max_concurrent``: trials running at once (None: as many as the CPUs/GPUs hold). The sweep
+    folder is locked while the sweep runs (``sonogym.runs.prepare_output``)."""
+    import_ray()
     out = Path(out).resolve()
     if resume:
         spec = read_json(out / SWEEP_FILE, "sonogym sweep", ("base", "grid", "seeds"))
@@ -139,11 +175,24 @@ def sweep(
         for k in grid:
             check_key(k)
         base = resolve_train_config(task, algo, **train_options)
+        configs = []
         for values in _grid_points(grid):  # every trial's config must be valid up front
-            apply(base, values)
-        prepare_output(out, resume=False, force=force, what="sweep", marker=SWEEP_FILE)
+            try:
+                configs.append(apply(base, values))
+            except ValueError as e:
+                raise ValueError(f"grid point {values}: {e}; change --grid") from None
+        check_sweep_memory(configs, len(configs) * seeds * samples, max_concurrent)
         spec = {"base": base.to_dict(), "grid": grid, "seeds": seeds, "samples": samples}
-        atomic_write_json(out / SWEEP_FILE, spec)
+    with prepare_output(out, resume=resume, force=force, kind="sweep") as folder:
+        if folder.deleted:
+            log(deleted_message(out, folder.deleted))
+        if not resume:
+            atomic_write_json(out / SWEEP_FILE, spec)
+        return _run_sweep(out, spec, address, max_concurrent, resume, log)
+
+
+def _run_sweep(out: Path, spec: dict, address, max_concurrent, resume: bool, log) -> SweepResult:
+    ray, tune = import_ray()
     base = TrainConfig.from_dict(spec["base"])
     resources = {"cpu": base.threads or 1}
     if str(base.device).startswith("cuda"):

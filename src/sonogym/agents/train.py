@@ -20,15 +20,20 @@ skrl the true final observation (``info["final_obs"]``) as ``next_observations``
 time-limit bootstrapping, and the reset one as the next step's input.
 
 Output folders follow ``sonogym.runs.prepare_output``: an existing run is continued only with
-``resume`` and replaced only with ``force``. ``resume`` reloads ``config.json`` before touching
-anything (an explicit option that differs is refused, naming it; ``steps``, ``device`` and
-``threads`` may change) and continues from the newest readable checkpoint (weights, optimiser,
-standardisers; the envs restart from a fresh reset and the rollout memory is empty). Ctrl-C
-saves a checkpoint at the last completed step and says how to resume.
+``resume`` and replaced only with ``force`` (only a folder marked as a training run, holding
+only what training and evaluation write; what it deletes is logged), and the folder is locked
+while a run writes it (a second run into it is refused, naming the first one's pid).
+``resume`` reloads ``config.json`` before touching anything (an explicit option that differs
+is refused, naming it; ``steps``, ``device`` and ``threads`` may change) and continues from the
+newest readable checkpoint (weights, optimiser, standardisers; the envs restart from a fresh
+reset and the rollout memory is empty). Ctrl-C saves a checkpoint at the last completed step
+and says how to resume.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 import time
 from collections.abc import Callable
@@ -40,8 +45,8 @@ import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
 from sonogym.agents.checkpoint import (
+    RL_RUN,
     check_obs_version,
-    latest_readable_checkpoint,
     read_checkpoint,
     set_log_std_ceiling,
 )
@@ -55,11 +60,14 @@ from sonogym.agents.configs import (
     use_multi_tensor_optimizers,
 )
 from sonogym.agents.networks import log_std_ceiling, make_models
-from sonogym.envs.registry import get_task, make_vec
+from sonogym.envs.registry import check_task_name, get_task, make_vec
+from sonogym.progress import progress_bar
 from sonogym.runs import (
+    RunFolder,
     TrainingInterrupted,
     atomic_torch_save,
     atomic_write_json,
+    deleted_message,
     prepare_output,
     read_json,
 )
@@ -113,7 +121,8 @@ def train(
         resume: continue the run in ``out`` (its ``config.json``); force: replace it.
         checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
             update boundaries; TensorBoard once per update).
-        progress: show a tqdm bar with the ETA; log: where the start summary goes (default:
+        progress: show the progress with the ETA (``sonogym.progress``: a bar on a terminal,
+            a line every few percent in a log); log: where the start summary goes (default:
             printed when ``progress``).
     """
     kw = dict(env_kwargs or {})
@@ -145,9 +154,31 @@ def train(
     return run_training(cfg, out, resume=resume, force=force, progress=progress, log=log)
 
 
+#: RSS growth of training per env and per byte of its rollout observations (rollouts x obs
+#: floats x 4), beyond the env's own: 64-step cpu-preset runs at 1 mm measured 1.9 (navigation,
+#: 4 -> 128 envs), 2.6 (reconstruction, 4 -> 32 envs, at the update's peak) and 3.7 (surgery,
+#: likewise): skrl's memory, the minibatches sampled from it and the update's activations.
+TRAINING_MEMORY_FACTOR = 4.0
+
+
+def check_training_memory(cfg: TrainConfig, obs_floats: int) -> None:
+    """Refuse a run whose rollout memory and update would not fit the device's free memory
+    (the env is built by now: what it holds is no longer free)."""
+    from sonogym.memory import check_fits, free_memory
+
+    r, n = cfg.params.rollouts, cfg.rl.num_envs
+    check_fits(
+        TRAINING_MEMORY_FACTOR * r * n * obs_floats * 4, free_memory(cfg.device),
+        f"{cfg.algo} training of {n} envs ({r} rollout steps of {obs_floats} observation "
+        "floats each)", "memory",
+        "use fewer envs (--envs), a larger --obs-downsample, or fewer rollouts",
+    )  # fmt: skip
+
+
 def load_train_config(out: str | Path) -> TrainConfig:
     """The ``TrainConfig`` a run folder was trained with (its ``config.json``)."""
     d = read_json(Path(out) / "config.json", "`sonogym train` run folder", ("task", "algo"))
+    check_task_name(d["task"], Path(out) / "config.json")
     if "task_config" in d:
         check_obs_version(d, Path(out) / "config.json")
     try:
@@ -174,24 +205,37 @@ def run_training(
     log: Callable[[str], None] = print,
     on_checkpoint: CheckpointCallback | None = None,
 ) -> TrainResult:
-    """Run the training ``cfg`` describes into ``out`` (see the module docstring)."""
-    from skrl.trainers.torch import SequentialTrainerCfg
-    from tqdm import tqdm
-
+    """Run the training ``cfg`` describes into ``out`` (see the module docstring); the run
+    folder is locked while it runs."""
     out = Path(out)
+    with prepare_output(out, resume=resume, force=force, kind="rl-run") as folder:
+        if folder.deleted:
+            log(deleted_message(out, folder.deleted))
+        return _run_training(cfg, out, resume, progress, log, on_checkpoint)
+
+
+def _run_training(
+    cfg: TrainConfig,
+    out: Path,
+    resume: bool,
+    progress: bool,
+    log: Callable[[str], None],
+    on_checkpoint: CheckpointCallback | None,
+) -> TrainResult:
+    from skrl.trainers.torch import SequentialTrainerCfg
+
     start_ckpt = None
     if resume:
-        start_ckpt = latest_readable_checkpoint(out, warn=log)
+        start_ckpt = RunFolder(out, RL_RUN).newest_readable_checkpoint(warn=log)
         if start_ckpt is None:
             raise FileNotFoundError(f"nothing to resume: no readable checkpoint in {out}")
-        if start_ckpt[1] >= cfg.steps:
+        if start_ckpt.step >= cfg.steps:
             raise ValueError(
-                f"{out} already has {start_ckpt[1]} steps >= the requested {cfg.steps}; "
+                f"{out} already has {start_ckpt.step} steps >= the requested {cfg.steps}; "
                 "pass a larger --steps to train further"
             )
-    else:
-        prepare_output(out, resume=False, force=force, what="training run", marker="config.json")
-    start = start_ckpt[1] if start_ckpt else 0
+        start_ckpt = dataclasses.replace(start_ckpt, state=None)  # the agent reads it below
+    start = start_ckpt.step if start_ckpt else 0
     threads_before = torch.get_num_threads()
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
@@ -204,6 +248,7 @@ def run_training(
         stagger_episodes=cfg.rl.stagger_episodes,
     )  # fmt: skip
     adapter.update_stats = statistics_update(cfg.rl, start)
+    check_training_memory(cfg, adapter.observation_space.shape[0])  # before skrl allocates
     models = _models(cfg, adapter)
     ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(
@@ -216,7 +261,7 @@ def run_training(
     agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
     ckpt_dir = out / "checkpoints"
     if start_ckpt is not None:
-        load_agent(agent, start_ckpt[0])
+        load_agent(agent, start_ckpt.path)
     resolved = {
         **cfg.to_dict(),
         "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
@@ -238,7 +283,8 @@ def run_training(
     obs, _ = adapter.reset()
     if log is not _quiet:
         _announce(cfg, out, start, log, agent, adapter, obs)
-    bar = tqdm(total=steps, initial=start, disable=not progress, unit="step", desc=f"{task}/{algo}")
+    clock = RunClock(ckpt_dir, start)
+    bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
     done = start
     recent = _EpisodeMeans()
     task_cfg = to_jsonable(cfg.rl)
@@ -272,12 +318,14 @@ def run_training(
             done = t + 1
             if done % ckpt_interval == 0 and done < steps:
                 path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+                clock.record(done)
                 if on_checkpoint is not None:
                     on_checkpoint(done, path, recent.pop())
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
+        clock.record(done)
         msg = (
             f"interrupted after {done} of {steps} steps; saved {path}. Resume with: sonogym "
             f"train --task {task} --algo {algo} --out {out} --resume"
@@ -291,9 +339,43 @@ def run_training(
         torch.set_num_threads(threads_before)
     bar.close()
     final = save_agent(agent, ckpt_dir / f"agent_{steps}.pt")
+    clock.record(steps)
     if on_checkpoint is not None:
         on_checkpoint(steps, final, recent.pop())
     return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+class RunClock:
+    """CPU and wall seconds a run has spent by each checkpoint, across resumes:
+    ``checkpoints/times.json`` = {env steps: {"cpu_s", "wall_s"}} (CPU: this process's, all its
+    threads; what a model card reports as the training's cost)."""
+
+    FILE = "times.json"
+
+    def __init__(self, ckpt_dir: Path, start: int) -> None:
+        self.path = Path(ckpt_dir) / self.FILE
+        self.times = read_times(ckpt_dir)
+        base = self.times.get(start, {"cpu_s": 0.0, "wall_s": 0.0})
+        # a resume continues from its checkpoint's totals; later entries were overtaken
+        self.times = {t: v for t, v in self.times.items() if t <= start}
+        self.cpu0, self.wall0 = time.process_time() - base["cpu_s"], time.time() - base["wall_s"]
+
+    def record(self, step: int) -> None:
+        self.times[step] = {
+            "cpu_s": round(time.process_time() - self.cpu0, 1),
+            "wall_s": round(time.time() - self.wall0, 1),
+        }
+        atomic_write_json(self.path, {str(t): v for t, v in sorted(self.times.items())})
+
+
+def read_times(ckpt_dir: str | Path) -> dict[int, dict[str, float]]:
+    """A run's ``checkpoints/times.json`` as {env steps: {"cpu_s", "wall_s"}} ({} if absent)."""
+    path = Path(ckpt_dir) / RunClock.FILE
+    try:
+        raw = json.loads(path.read_text())
+        return {int(t): {k: float(v[k]) for k in ("cpu_s", "wall_s")} for t, v in raw.items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 class _EpisodeMeans:
@@ -410,11 +492,11 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
 
     Why: the KL of a fixed change of the Gaussian's mean grows as 1/sigma^2, so with a fixed
     threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
-    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then
-    (surgery state seeds, docs/results.md). Scaled, the threshold bounds the mean's step per
-    update in action units instead, the same at every sigma. Tried on the surgery state
-    seeds it kept the learning rate 3-8x higher and made their tilt worse, so it is off by
-    default (docs/results.md)."""
+    to skrl's floor of 1e-6, and the policy freezes with whatever tilt or offset it has then.
+    Scaled, the threshold bounds the mean's step per update in action units instead, the same
+    at every sigma. Off by default: on the surgery state task it kept the learning rate 3-8x
+    higher and made the tilt worse (the reward barely paid for the tilt; the ``cpu`` preset's
+    w5 = 50 fixed that)."""
     base = rl.params(algo).kl_threshold
     if not rl.kl_follows_sigma or rl.final_log_std is None:
         return base
@@ -430,7 +512,7 @@ def statistics_update(rl: TaskRLConfig, step: int) -> bool:
     that had learned the task collapsed at 68 k steps after its statistics had moved the
     target's standardised depth by 1.2, 0.6 and 0.25 std per 12 k steps while its KL-adaptive
     learning rate, shrinking with sigma, sat at 1e-6: the policy could no longer follow its own
-    inputs (docs/results.md)."""
+    inputs."""
     return rl.standardize_steps == 0 or step < rl.standardize_steps
 
 

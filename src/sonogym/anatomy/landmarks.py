@@ -1,11 +1,25 @@
 """Vertebra frames and planned pedicle-screw trajectories, computed from the vertebra masks.
 
-One code path for phantoms and real TotalSegmentator data. Rules (ultrasound_physics.md §4-5):
+One code path for phantoms and real TotalSegmentator data, ground-truth masks or model output,
+at 0.5-3 mm. Rules (ultrasound_physics.md §4-5):
 
-* Vertebra frame: origin at the vertebral-body centroid; s (superior) along the spine, from the
-  neighbouring vertebrae's centroids; a (anterior) from the spinal-canal centre toward the body
-  centroid (so axial rotation is captured); l = a x s (toward the patient's right).
-* Spinal canal: the hole enclosed by the vertebral ring in a +/-6 mm slab around the centroid.
+* Vertebra frame: origin at the vertebral-body centroid (the vertebra's voxels more than 2 mm in
+  front of the canal, within 30 mm of it laterally); s (superior) along the spine: first from
+  the neighbouring vertebrae's centroids, then from the curve through the body centroids (a
+  central difference between the neighbours' bodies, at an end of the spine in view the tangent
+  of the quadratic through three bodies), which a rough or damaged posterior arch does not move;
+  a (anterior) from the spinal-canal centre toward the body centroid (so axial rotation is
+  captured); l = a x s (toward the patient's right).
+* Spinal canal, in the axial projection of a +-10 mm slab (then +-5 mm) around the vertebra's
+  centroid, the first of:
+    1. the empty region the vertebral ring encloses, gaps in the arch (thin laminae, partial
+       volume) bridged by closings of radius ``RING_GAP_CLOSING`` (up to 6 mm: 12 mm gaps);
+    2. the spinal_canal / spinal_cord label behind the body, when the label map has one;
+    3. the empty region behind the body inside the projection's convex hull (an arch open wider
+       than the closings bridge).
+  A hole counts only behind the vertebra's centroid, within 15 mm of it laterally, at least
+  15 mm^2 and 4 mm across both ways. A vertebra with none of these (its mask lacks the posterior
+  arch or fills the canal) is refused, as is one touching the field of view's edge.
 * Pedicle centre: centroid of the vertebra's voxels lateral to the canal, within the canal's
   middle half in the anterior direction (the bony bridge between body and posterior arch).
 * Trajectory: the straight path, among those the anatomical rules allow, that keeps the widest
@@ -19,10 +33,15 @@ One code path for phantoms and real TotalSegmentator data. Rules (ultrasound_phy
     - entry where the line leaves the bone posteriorly (the posterior bone surface, behind the
       canal); target at 80 % of the in-bone length from the entry toward the anterior cortex, in
       the body (in front of the canal); entry-to-target length within ``LENGTH_RANGE``.
+  The bone is the vertebra's mask with one-voxel pits and holes closed (a closing by the
+  6-neighbourhood, then holes filled): mask noise neither breaks a path nor narrows a corridor;
+  the entry itself lies on a voxel of the mask as given.
   Radius: the largest corridor (<= 3.5 mm, 0.25 mm steps) that stays in the vertebra from 5 mm
   past the entry (the entry itself lies on an oblique surface) to the target. A corridor under
   ``MIN_RADIUS``, or no path that meets the rules, is refused: ``Landmarks.trajectory`` then
-  raises a ``LandmarkError`` naming the level, the side and why.
+  raises a ``LandmarkError`` naming the level, the side and why. A corridor cannot exist, and is
+  refused, only where the bone the rules need is absent from the mask: a pedicle narrower than
+  3 mm (2 x ``MIN_RADIUS``) once closed, or no posterior surface behind the canal to enter.
 """
 
 from __future__ import annotations
@@ -31,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
 
 from sonogym.anatomy import labels as L
 from sonogym.anatomy.volume import Volume
@@ -42,6 +62,17 @@ _TARGET_FRACTION = 0.8
 _CORRIDOR_START = 0.005  # m past the entry
 _BACK_RANGE = 0.045  # m searched behind the pedicle for the entry
 _FORWARD_RANGE = 0.08  # m searched in front of it for the anterior cortex
+_CANAL_SLABS = (0.010, 0.005)  # m, half-thickness of the axial slabs projected to find the canal
+_CANAL_MIN_AREA = 15e-6  # m^2: a smaller hole in the ring is not a canal
+_CANAL_MIN_SIZE = 0.004  # m, side to side and front to back: not a gap in the arch or a sliver
+_CANAL_LABEL_MIN_AREA = 10e-6  # m^2 of canal label (a cord alone is ~40 mm^2)
+_CANAL_MAX_OFFSET = 0.015  # m, canal centre from the vertebra's centroid, laterally
+_CANAL_MAX_DEPTH = 0.045  # m, canal centre behind the vertebra's centroid, at most
+_CANAL_LABELS = (L.SPINAL_CANAL, L.LABEL_IDS["spinal_cord"])
+
+#: Closing radii (m) tried in turn on the ring's axial projection: gaps in the posterior arch up
+#: to twice the radius are bridged (ground-truth masks of thin laminae, partial volume).
+RING_GAP_CLOSING = (0.0, 0.0015, 0.003, 0.0045, 0.006)
 
 #: Allowed medial angle, degrees relative to the 5 deg x level rule (more medial positive).
 MEDIAL_TOLERANCE = (-5.0, 10.0)
@@ -144,8 +175,9 @@ class Landmarks:
     @classmethod
     def from_patient(cls, patient: Volume) -> Landmarks:
         lab_np = patient.labels.numpy()
-        ids = np.array([L.VERTEBRA_IDS[lv] for lv in _SPINE_ORDER], np.uint8)
-        # One pass over the volume: voxel indices of every spine level, grouped by label.
+        ids = np.array([L.VERTEBRA_IDS[lv] for lv in _SPINE_ORDER] + list(_CANAL_LABELS), np.uint8)
+        # One pass over the volume: voxel indices of every spine level (and of the canal's
+        # labels), grouped by label.
         flat = np.flatnonzero(np.isin(lab_np, ids))
         vals = lab_np.reshape(-1)[flat]
         order = np.argsort(vals, kind="stable")
@@ -161,31 +193,40 @@ class Landmarks:
                 sel = flat[bounds[0][k] : bounds[1][k]]
                 idx[lv] = np.stack(np.unravel_index(sel, lab_np.shape), 1)
                 pts[lv] = org + idx[lv] * sp
+        canal_sel = np.concatenate([flat[bounds[0][k] : bounds[1][k]] for k in (-2, -1)])
+        canal_pts = org + np.stack(np.unravel_index(canal_sel, lab_np.shape), 1) * sp
         cents = {lv: p.mean(0) for lv, p in pts.items()}
-        frames: dict[str, VertebraFrame] = {}
+        cut = {lv: _cut_by_fov(idx[lv], lab_np.shape) for lv in present}
         trajs: dict[tuple[str, str], PedicleTrajectory] = {}
-        refused: dict = {}
-        for i, lv in enumerate(present):
-            if lv not in L.LUMBAR_VERTEBRAE:
-                continue
-            cut = _cut_by_fov(idx[lv], lab_np.shape)
-            if cut:
-                refused[lv] = (
-                    f"its mask touches the field of view's edge ({cut}): the scan cuts it, so "
-                    "its centre, frame and trajectories would be wrong"
-                )
-                continue
-            up = present[i - 1] if i > 0 else None
-            lo = present[i + 1] if i + 1 < len(present) else None
-            a_, b_ = cents[up] if up else cents[lv], cents[lo] if lo else cents[lv]
-            s_ax = a_ - b_ if up or lo else np.array([0.0, 0.0, 1.0])
-            s_ax = s_ax / np.linalg.norm(s_ax)
-            try:
-                frame = _vertebra_frame(lv, pts[lv], cents[lv], s_ax, sp.min())
-            except LandmarkError as e:
-                refused[lv] = str(e).removeprefix(f"vertebra {lv}: ")
-                continue
-            frames[lv] = frame
+        refused: dict = {
+            lv: f"its mask touches the field of view's edge ({cut[lv]}): the scan cuts it, so its "
+            "centre, frame and trajectories would be wrong"
+            for lv in present
+            if cut[lv] and lv in L.LUMBAR_VERTEBRAE
+        }
+        whole = [lv for lv in present if not cut[lv]]
+        h = sp.min()
+
+        def frames_along(s_axes: dict) -> tuple[dict, dict]:
+            """Frames (and reasons for the ones that fail) given each level's s axis."""
+            out, why = {}, {}
+            for lv, s_ax in s_axes.items():
+                try:
+                    out[lv] = _vertebra_frame(lv, pts[lv], cents[lv], s_ax, h, canal_pts)
+                except LandmarkError as e:
+                    why[lv] = str(e).removeprefix(f"vertebra {lv}: ")
+            return out, why
+
+        # s first from the neighbours' centroids (a neighbour cut by the scan still lies along
+        # the spine), then from the curve through the body centroids (the frames' origins),
+        # which a rough or partial posterior arch does not move.
+        first, why = frames_along({lv: _neighbour_axis(present, lv, cents) for lv in whole})
+        bodies = [lv for lv in present if lv in first]
+        tangents = _spine_tangents(bodies, np.array([first[lv].centre for lv in bodies]))
+        second, _ = frames_along(tangents)
+        frames = {lv: second.get(lv, first[lv]) for lv in first if lv in L.LUMBAR_VERTEBRAE}
+        refused.update({lv: w for lv, w in why.items() if lv in L.LUMBAR_VERTEBRAE})
+        for lv, frame in frames.items():
             bone = _BoneField(lab_np, L.VERTEBRA_IDS[lv], idx[lv], org, sp)
             for side in ("left", "right"):
                 t = plan_corridor(lv, side, frame, pts[lv], bone)
@@ -197,6 +238,38 @@ class Landmarks:
 
 
 # ----------------------------------------------------------------------------- internals
+
+
+def _neighbour_axis(order: list[str], level: str, points: dict) -> np.ndarray:
+    """Unit s at ``level``: from the point of the level above to that of the level below in
+    ``order`` (the level's own point where a neighbour is absent)."""
+    i = order.index(level)
+    up = points[order[i - 1]] if i > 0 else points[level]
+    lo = points[order[i + 1]] if i + 1 < len(order) else points[level]
+    s_ax = up - lo if len(order) > 1 else np.array([0.0, 0.0, 1.0])
+    return s_ax / np.linalg.norm(s_ax)
+
+
+def _spine_tangents(order: list[str], centres: np.ndarray) -> dict[str, np.ndarray]:
+    """Unit tangents (toward the head) of the curve through body ``centres`` (K, 3), listed head
+    to foot: a central difference between the neighbours, or at an end, the tangent of the
+    quadratic through the end and its next two (a one-sided difference would be off by half the
+    angle between two levels on a lordotic curve)."""
+    out = {}
+    if len(order) < 2:
+        return out
+    t = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
+    for i, lv in enumerate(order):
+        if 0 < i < len(order) - 1:
+            d = centres[i - 1] - centres[i + 1]
+        elif len(order) == 2:
+            d = centres[0] - centres[1]
+        else:
+            k = [0, 1, 2] if i == 0 else [i - 2, i - 1, i]
+            a, b, _ = np.polyfit(t[k], centres[k], 2)
+            d = -(2 * a * t[i] + b)  # t grows toward the feet
+        out[lv] = d / np.linalg.norm(d)
+    return out
 
 
 def _cut_by_fov(idx: np.ndarray, shape) -> str:
@@ -213,17 +286,20 @@ def _cut_by_fov(idx: np.ndarray, shape) -> str:
 class _BoneField:
     """One vertebra on a crop around it: nearest-voxel membership and a signed distance to its
     surface (m, positive inside; the surface lies halfway between inside and outside voxel
-    centres), both at patient-frame points."""
+    centres), both at patient-frame points. Both read the mask with its one-voxel pits and holes
+    closed (mask noise of rough ground truth and model output, not missing bone), so they
+    neither break a path nor narrow a corridor; ``inside(raw=True)`` reads the mask as given."""
 
     def __init__(self, labels: np.ndarray, label: int, idx: np.ndarray, origin, spacing) -> None:
         pad = np.ceil(0.004 / spacing).astype(int) + 2
         lo = np.maximum(idx.min(0) - pad, 0)
         hi = np.minimum(idx.max(0) + pad + 1, labels.shape)
-        crop = labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] == label
+        raw = labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] == label
+        crop = ndimage.binary_fill_holes(ndimage.binary_closing(raw) | raw)
         self.label = label
         self.spacing = np.asarray(spacing, np.float64)
         self.origin = np.asarray(origin, np.float64) + lo * self.spacing
-        self.inside_grid = crop
+        self.raw_grid, self.inside_grid = raw, crop
         half = 0.5 * float(self.spacing.min())
         # Outside voxels all get -half: only clearances inside the bone are ever asked for, and
         # an outside voxel next to the surface is exactly half a voxel from it.
@@ -233,12 +309,14 @@ class _BoneField:
     def _ijk(self, p: np.ndarray) -> np.ndarray:
         return (p - self.origin) / self.spacing
 
-    def inside(self, p: np.ndarray) -> np.ndarray:
-        """(...,) whether the nearest voxel of each point (..., 3) belongs to the vertebra."""
+    def inside(self, p: np.ndarray, raw: bool = False) -> np.ndarray:
+        """(...,) whether the nearest voxel of each point (..., 3) belongs to the vertebra (its
+        closed mask; the mask as given when ``raw``)."""
+        grid = self.raw_grid if raw else self.inside_grid
         ijk = np.rint(self._ijk(p)).astype(np.int64)
-        ok = ((ijk >= 0) & (ijk < self.inside_grid.shape)).all(-1)
-        ijk = np.clip(ijk, 0, np.array(self.inside_grid.shape) - 1)
-        return ok & self.inside_grid[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+        ok = ((ijk >= 0) & (ijk < grid.shape)).all(-1)
+        ijk = np.clip(ijk, 0, np.array(grid.shape) - 1)
+        return ok & grid[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
 
     def signed_distance(self, p: np.ndarray) -> np.ndarray:
         """(...,) trilinear signed distance (m) at points (..., 3); outside the crop: negative."""
@@ -251,41 +329,125 @@ def _project(pts: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> np.ndarra
     return (pts - origin) @ axes
 
 
-def _canal(pts, centre, l_ax, a_ax, s_ax, h):
-    """Canal centre (3,), half-width, half-depth from the hole in the vertebral ring."""
-    q = _project(pts, centre, np.stack([l_ax, a_ax, s_ax], 1))
-    slab = q[np.abs(q[:, 2]) < 0.006]
-    if len(slab) < 10:
-        return None
-    lo = slab[:, :2].min(0) - 2 * h
-    ij = np.floor((slab[:, :2] - lo) / h).astype(int)
-    grid = np.zeros(ij.max(0) + 2, bool)
+def _disk(radius_cells: int) -> np.ndarray:
+    r = np.arange(-radius_cells, radius_cells + 1)
+    return (r[:, None] ** 2 + r[None, :] ** 2) <= radius_cells**2 + 1e-9
+
+
+def _axial_projection(q: np.ndarray, h: float, pad: int):
+    """Occupancy grid (U, V) of the points ``q`` (N, 3; l, a, s in m) projected along s onto
+    cells of ``h``, ``pad`` empty cells around them, and the (U, V, 2) cell centres (l, a)."""
+    lo = q[:, :2].min(0) - pad * h
+    ij = np.floor((q[:, :2] - lo) / h).astype(int)
+    grid = np.zeros(ij.max(0) + pad + 1, bool)
     grid[ij[:, 0], ij[:, 1]] = True
-    grid = ndimage.binary_closing(grid, iterations=1)
-    hole = ndimage.binary_fill_holes(grid) & ~grid
+    return grid, lo + (np.indices(grid.shape).transpose(1, 2, 0) + 0.5) * h
+
+
+def _canal_hole(hole: np.ndarray, uv: np.ndarray, h: float):
+    """The component of ``hole`` that is the canal (the largest lying behind the vertebra's
+    centroid, the origin of ``uv``, near its midline), as a mask; None when there is none."""
     lab, n = ndimage.label(hole)
     if n == 0:
         return None
-    sizes = ndimage.sum(hole, lab, range(1, n + 1))
-    k = int(np.argmax(sizes)) + 1
-    cells = np.argwhere(lab == k)
-    if len(cells) * h * h < 30e-6:  # < 30 mm^2: not a canal
+    idx = np.arange(1, n + 1)
+    area = ndimage.sum(hole, lab, idx) * h * h
+    cl = np.asarray(ndimage.mean(uv[..., 0], lab, idx))
+    ca = np.asarray(ndimage.mean(uv[..., 1], lab, idx))
+    ok = (area >= _CANAL_MIN_AREA) & (np.abs(cl) < _CANAL_MAX_OFFSET)
+    for k in range(2):  # extents along l and a
+        size = np.asarray(ndimage.maximum(uv[..., k], lab, idx))
+        ok &= size - np.asarray(ndimage.minimum(uv[..., k], lab, idx)) + h >= _CANAL_MIN_SIZE
+    ok &= (ca < 0) & (ca > -_CANAL_MAX_DEPTH)
+    return lab == idx[ok][np.argmax(area[ok])] if ok.any() else None
+
+
+def _canal_from_ring(grid: np.ndarray, uv: np.ndarray, h: float):
+    """Canal mask on the axial projection ``grid``: the empty region the vertebral ring encloses,
+    gaps in the arch bridged by closings of growing radius (``RING_GAP_CLOSING``)."""
+    for radius in RING_GAP_CLOSING:
+        rc = int(round(radius / h))
+        closed = ndimage.binary_closing(grid, _disk(rc)) if rc else grid
+        inner = ndimage.binary_fill_holes(closed)
+        region = _canal_hole(inner & ~closed, uv, h)
+        if region is None:
+            continue
+        if rc:
+            # Back into the corners the closing rounded off (a trefoil canal's lateral recesses)
+            # and into the bridged gaps, within the hole's anterior-posterior span (+-r): not out
+            # through a gap into the notches behind the arch.
+            rows = np.flatnonzero(region.any(0))
+            band = np.zeros_like(grid)
+            band[:, max(rows[0] - rc, 0) : rows[-1] + rc + 1] = True
+            free, _ = ndimage.label(inner & ~grid & band)
+            region = free == free[region][0]
+        return region
+    return None
+
+
+def _canal_from_hull(grid: np.ndarray, uv: np.ndarray, h: float):
+    """Canal mask on the axial projection ``grid``: the empty region inside the projection's
+    convex hull behind the body (an arch open wider than the closings bridge)."""
+    cells = uv[grid]
+    if len(cells) < 3:
         return None
-    uv = lo + (cells + 0.5) * h
-    c = uv.mean(0)
-    half_w = (uv[:, 0].max() - uv[:, 0].min() + h) / 2
-    half_d = (uv[:, 1].max() - uv[:, 1].min() + h) / 2
+    try:
+        eq = ConvexHull(cells).equations
+    except QhullError:  # all cells on a line
+        return None
+    inside = (uv @ eq[:, :2].T + eq[:, 2] <= 1e-9).all(-1)
+    return _canal_hole(inside & ~grid, uv, h)
+
+
+def _canal(pts, centre, l_ax, a_ax, s_ax, h, label_pts):
+    """Canal centre (3,), half-width, half-depth, in axial slabs around ``centre``: from the
+    vertebral ring (a slab of +-``_CANAL_SLABS[0]``, then thinner ones, where the canal narrows
+    less over the slab), else the canal's own label (``label_pts``: spinal_canal and spinal_cord
+    voxels), else the convex hull of the arch; None when none shows a canal."""
+    rot = np.stack([l_ax, a_ax, s_ax], 1)
+    q_all = _project(pts, centre, rot)
+    pad = int(np.ceil(max(RING_GAP_CLOSING) / h)) + 3
+    cells, projections = None, []
+    for slab in _CANAL_SLABS:
+        q = q_all[np.abs(q_all[:, 2]) < slab]
+        if len(q) < 10:
+            continue
+        grid, uv = _axial_projection(q, h, pad)
+        projections.append((grid, uv))
+        region = _canal_from_ring(grid, uv, h)
+        if region is not None:
+            cells = uv[region]
+            break
+    if not projections:
+        return None
+    if cells is None and len(label_pts):
+        q = _project(label_pts, centre, rot)
+        q = q[(np.abs(q[:, 2]) < _CANAL_SLABS[0]) & (np.abs(q[:, 0]) < _CANAL_MAX_OFFSET)]
+        q = q[(q[:, 1] < 0) & (q[:, 1] > -_CANAL_MAX_DEPTH)]
+        cells = (np.unique(np.floor(q[:, :2] / h), axis=0) + 0.5) * h
+        cells = cells if len(cells) * h * h >= _CANAL_LABEL_MIN_AREA else None
+    if cells is None:
+        region = _canal_from_hull(*projections[0], h)
+        cells = projections[0][1][region] if region is not None else None
+    if cells is None:
+        return None
+    c = cells.mean(0)
+    half_w = (np.ptp(cells[:, 0]) + h) / 2
+    half_d = (np.ptp(cells[:, 1]) + h) / 2
     return centre + c[0] * l_ax + c[1] * a_ax, half_w, half_d
 
 
-def _vertebra_frame(level, pts, centroid, s_ax, h) -> VertebraFrame:
+def _vertebra_frame(level, pts, centroid, s_ax, h, label_pts) -> VertebraFrame:
     a0 = np.array([0.0, 1.0, 0.0]) - s_ax[1] * s_ax
     a0 /= np.linalg.norm(a0)
     l0 = np.cross(a0, s_ax)
-    canal = _canal(pts, centroid, l0, a0, s_ax, h)
+    canal = _canal(pts, centroid, l0, a0, s_ax, h, label_pts)
     if canal is None:
         raise LandmarkError(
-            f"vertebra {level}: its mask has no closed vertebral ring around a spinal canal"
+            f"vertebra {level}: its mask has no vertebral ring around a spinal canal (no empty "
+            "region behind the body inside the arch or its convex hull) and the label map has no "
+            "spinal_canal or spinal_cord there: the mask lacks its posterior arch or fills its "
+            "canal"
         )
     cc, hw, hd = canal
     # Body: voxels anterior of the canal, within 30 mm of the midline.
@@ -301,7 +463,7 @@ def _vertebra_frame(level, pts, centroid, s_ax, h) -> VertebraFrame:
     a_ax /= np.linalg.norm(a_ax)
     l_ax = np.cross(a_ax, s_ax)
     # Re-measure the canal in the refined frame.
-    canal = _canal(pts, centroid, l_ax, a_ax, s_ax, h)
+    canal = _canal(pts, centroid, l_ax, a_ax, s_ax, h, label_pts)
     if canal is not None:
         cc, hw, hd = canal
     rot = np.stack([l_ax, a_ax, s_ax], 1)
@@ -369,6 +531,14 @@ def _walk(ins: np.ndarray, max_run: int) -> tuple[np.ndarray, np.ndarray]:
     return last_true[np.arange(len(ins)), k], ~broken.any(1)
 
 
+def _onto_raw_bone(raw: np.ndarray, start: np.ndarray, reach: int) -> np.ndarray:
+    """(C,) samples from ``start`` (C,) forward to the first True of ``raw`` (C, T) within
+    ``reach`` samples; 0 where there is none."""
+    k = np.minimum(start[:, None] + np.arange(reach + 1), raw.shape[1] - 1)
+    hit = raw[np.arange(len(raw))[:, None], k]
+    return np.where(hit.any(1), hit.argmax(1), 0)
+
+
 def _evaluate(lines: _Lines, bone: _BoneField, frame: VertebraFrame, step: float) -> _Lines:
     """Entry, target, clearance and rule check of every candidate line (vectorised)."""
     h = float(bone.spacing.min())
@@ -382,9 +552,11 @@ def _evaluate(lines: _Lines, bone: _BoneField, frame: VertebraFrame, step: float
         pts = lines.anchor[sl, None] + ts[None, :, None] * lines.d[sl, None]
         ins = bone.inside(pts)
         w = np.where(ins[:, n_back], 0, 1)
-        # Back from the anchor: the entry is the last bone sample before a gap > 1 voxel;
-        # forward: the anterior cortex is the last one before a gap > 2 voxels.
+        # Back from the anchor: the entry is the last bone sample before a gap > 1 voxel, moved
+        # forward onto the first sample of the mask as given (the entry lies on bone, not in a
+        # closed pit); forward: the anterior cortex is the last one before a gap > 2 voxels.
         back, open_back = _walk(ins[:, n_back::-1], int(1.01 * h / step + 1e-9))
+        back -= _onto_raw_bone(bone.inside(pts, raw=True), n_back - back, int(h / step + 1))
         fwd, _ = _walk(ins[:, n_back:], int(2.01 * h / step + 1e-9))
         w[(w == 0) & open_back] = 2  # still in bone _BACK_RANGE back
         e_t = -back * step
@@ -521,7 +693,7 @@ def plan_corridor(
 
 def _corridor_radius(bone: _BoneField, entry, target, h) -> float:
     """Largest radius (0.25 mm steps, <= 3.5 mm) whose rings around the axis, from 5 mm past the
-    entry to the target, all fall on voxels of the vertebra."""
+    entry to the target, all fall on voxels of the vertebra (its closed mask)."""
     axis = target - entry
     length = np.linalg.norm(axis)
     d = axis / length
@@ -530,11 +702,13 @@ def _corridor_radius(bone: _BoneField, entry, target, h) -> float:
         e1 = np.cross(d, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(d, e1)
-    ts = np.arange(min(_CORRIDOR_START, length / 2), length, h / 2)[:, None, None]
-    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-    ring = np.cos(ang)[None, :, None] * e1 + np.sin(ang)[None, :, None] * e2
+    # Samples a quarter voxel apart along the axis and around each ring (no voxel slips between)
+    start = min(_CORRIDOR_START, length / 2)
+    ts = np.linspace(start, length, int(np.ceil((length - start) / (h / 4))) + 1)[:, None, None]
     best = 0.0
     for r in np.arange(_RADIUS_STEP, _MAX_RADIUS + 1e-9, _RADIUS_STEP):
+        ang = np.linspace(0, 2 * np.pi, max(16, int(np.ceil(2 * np.pi * r / (h / 4)))), False)
+        ring = np.cos(ang)[None, :, None] * e1 + np.sin(ang)[None, :, None] * e2
         if not bone.inside(entry + ts * d + r * ring).all():
             break
         best = r

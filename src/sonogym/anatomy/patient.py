@@ -31,6 +31,17 @@ class Patient(Volume):
         """Vertebra frames and planned pedicle trajectories (computed once)."""
         return Landmarks.from_patient(self)
 
+    def adopt(self, model: PatientModel) -> None:
+        """Take the skin and landmarks of ``model``, derived earlier from these same volumes
+        (a reload of the same patient), instead of computing them again."""
+        if model.shape != self.shape or not np.array_equal(model.affine, self.affine):
+            raise PatientError(
+                f"{self.name}: cannot adopt the models of {model.name}, another grid "
+                f"({model.shape} voxels) than this patient's ({self.shape})"
+            )
+        self.__dict__["skin"] = model.skin  # where cached_property keeps its value
+        self.__dict__["landmarks"] = model.landmarks
+
     def model(self) -> PatientModel:
         """This patient without its CT and label volumes (skin and landmarks computed now)."""
         return PatientModel(

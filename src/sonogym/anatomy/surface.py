@@ -65,7 +65,8 @@ class SkinSurface:
     @classmethod
     def stack(cls, surfaces: list[SkinSurface]) -> SkinSurface:
         """One surface object answering for several patients: queries take ``patient`` (an
-        index tensor broadcastable to the query) to pick whose skin to use."""
+        index tensor broadcastable to the query) to pick whose skin to use. Single-patient
+        surfaces on the same device afterwards read their rows of the stacked table."""
         if not surfaces:
             raise ValueError("stack needs at least one SkinSurface")
         tables = [t for s in surfaces for t in s._table]
@@ -85,6 +86,12 @@ class SkinSurface:
         out.normal_sigma = surfaces[0].normal_sigma
         out._table = torch.stack(padded).to(surfaces[0].device)
         out._grid = torch.cat([s._grid for s in surfaces]).to(surfaces[0].device)
+        if all(s.num_patients == 1 and s.device == out.device for s in surfaces):
+            # the stacked table is the one copy: each surface reads its own rows of it (the
+            # same values, padding beyond its grid never read), so an env over P patients
+            # holds their skins once, not twice
+            for i, s in enumerate(surfaces):
+                s._table = out._table[i : i + 1]
         return out
 
     @property

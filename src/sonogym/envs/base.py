@@ -25,6 +25,8 @@ near their goal). ``reset()`` returns the new state in its ``info``.
 from __future__ import annotations
 
 import dataclasses
+import math
+from numbers import Integral
 from typing import Any
 
 import gymnasium as gym
@@ -47,14 +49,52 @@ def make_config(cls: type, kwargs: dict[str, Any]):
     return cls(**kwargs)
 
 
+def check_number_fields(cfg: Any) -> None:
+    """Refuse what no numeric setting can mean, by the field's annotation: a ``float`` field
+    (alone, optional or in a tuple of floats) must be a finite number (NaN, inf, or 1e309,
+    which reads as inf, are refused); an ``int`` field an integer, where an integral float
+    such as 2.0 is taken as 2 and 2.5 is refused (never truncated); a bool is no number.
+    Call first in a frozen config dataclass's ``__post_init__``."""
+    name = type(cfg).__name__
+    for f in dataclasses.fields(cfg):
+        kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+        v = getattr(cfg, f.name)
+        if kind == "int":
+            object.__setattr__(cfg, f.name, _integer(f"{name}.{f.name}", v))
+        elif kind == "float" or (kind == "float | None" and v is not None):
+            _finite(f"{name}.{f.name}", v)
+        elif kind.startswith("tuple[float") and isinstance(v, tuple | list):
+            for i, x in enumerate(v):
+                _finite(f"{name}.{f.name}[{i}]", x)
+        elif kind.startswith("dict[str, float]") and isinstance(v, dict):
+            for k, x in v.items():
+                _finite(f"{name}.{f.name}[{k!r}]", x)
+
+
+def _finite(what: str, v: Any) -> None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
+        raise ValueError(f"{what} must be a finite number, got {v!r}; give a number in its unit")
+
+
+def _integer(what: str, v: Any) -> int:
+    if isinstance(v, float) and v.is_integer():
+        return int(v)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ValueError(f"{what} must be an integer, got {v!r}; give a whole number (it is "
+                         "never rounded)")  # fmt: skip
+    return v
+
+
 class TorchVectorEnv(VectorEnv):
     """Batched env over torch tensors. Subclasses set the spaces and implement the hooks."""
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
 
     def __init__(self, num_envs: int, device: str | torch.device, episode_length: int) -> None:
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if isinstance(num_envs, bool) or not isinstance(num_envs, Integral) or num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        if isinstance(episode_length, bool) or not isinstance(episode_length, Integral):
+            raise ValueError(f"episode_length must be an integer (steps), got {episode_length!r}")
         self.num_envs = int(num_envs)
         self.device = torch.device(device)
         self.episode_length = int(episode_length)
@@ -168,6 +208,12 @@ class TorchVectorEnv(VectorEnv):
         """The info of every env's current state (after an autoreset: the new episodes' start
         states, which ``step``'s own info, describing the finished transition, does not hold)."""
         return self._get_info()
+
+    def current_metrics(self, env_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The task's episode metrics of the envs' current states (None: every env), as
+        ``final_info`` would report them if their episodes ended now (without ``return``)."""
+        ids = torch.arange(self.num_envs, device=self.device) if env_ids is None else env_ids
+        return self._episode_metrics(ids)
 
     def render(self) -> np.ndarray:
         """RGB frame (uint8, H x W x 3) of env 0."""

@@ -78,7 +78,10 @@ def probe_position(env, info) -> np.ndarray:
 
 
 def first_image(obs) -> torch.Tensor:
-    """Env 0's 2-D image of an image observation (N, 1, H, W)."""
+    """Env 0's 2-D image of an image observation (N, 1, H, W), or of a Dict observation's
+    ``image`` (``obs_mode="us_heading"``)."""
+    if isinstance(obs, dict):
+        obs = obs["image"]
     return obs[0, 0]
 
 

@@ -92,7 +92,8 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.spec import (
@@ -100,6 +101,7 @@ from sonogym.envs.spec import (
     SMALL_CONV3,
     A2CParams,
     Demo,
+    EnvMemory,
     Metric,
     PPOParams,
     TaskSpec,
@@ -108,6 +110,7 @@ from sonogym.envs.spec import (
 )
 from sonogym.geometry import normalize, relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
+from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
 
 ObsMode = Literal["reconstruction", "state"]
@@ -124,6 +127,8 @@ class ReconstructionConfig:
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
+    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
+    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
     obs_mode: ObsMode = "reconstruction"  # Dict observation, or the privileged state
     device: str = "cpu"
     episode_length: int = 300  # control steps (paper)
@@ -146,6 +151,10 @@ class ReconstructionConfig:
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (DESIGN.md §5)
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
+        object.__setattr__(
+            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
+        )
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.episode_length < 1:
@@ -254,6 +263,7 @@ class ReconstructionEnv(TorchVectorEnv):
                 f"target_vertebra {cfg.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
             )
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         self.scene = ProbeScene.from_config(cfg, num_envs, self.device, render=False)
         dev, n, size = self.device, num_envs, cfg.volume_size
@@ -329,6 +339,7 @@ class ReconstructionEnv(TorchVectorEnv):
         g = torch.arange(size, dtype=torch.float32, device=dev)
         self._grid_xy = g - (size - 1) / 2
         self._grid_z = g + 0.5
+        self.scene.randomize_imaging(cfg.imaging_randomization)
         self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
@@ -356,6 +367,8 @@ class ReconstructionEnv(TorchVectorEnv):
             t[env_ids] = 0
         if self.cfg.simulator == "learned":  # last, so the other draws match model-based runs
             self.scene.draw_nets(env_ids, self.rand(len(env_ids)))
+        if self.scene.imaging_randomization is not None:  # after: draws above stay the same
+            self.scene.draw_imaging(env_ids, self.rand(len(env_ids), 8))
 
     def tangent_map(self) -> torch.Tensor:
         """(N, 2, 2) map from a tangential step (dx along x_U, dy along y_U0 = n x x_U) to the
@@ -630,6 +643,7 @@ SPEC = TaskSpec(
     demo=Demo(
         image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
     ),
+    memory=EnvMemory(per_env=2.24e6, per_patient=165e6, load_peak=220e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c"),
         ppo=PPOParams(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import gymnasium as gym
 
 from sonogym.envs import navigation, reconstruction, surgery
+from sonogym.envs.base import make_config
 from sonogym.envs.spec import TaskSpec
 
 _MODULES = (navigation, reconstruction, surgery)
@@ -31,6 +32,18 @@ def get_task(name: str) -> TaskSpec:
     raise ValueError(f"unknown task {name!r}; known tasks: {sorted(TASKS)}")
 
 
+def check_task_name(task: object, where: object) -> str:
+    """``task`` as a file read from disk (``where``, e.g. a run's config.json) gives it: one of
+    the registered task names exactly, since it names files and folders; anything else (an
+    edited or foreign file) is refused, naming the file and the known tasks."""
+    if not isinstance(task, str) or task not in TASKS:
+        raise ValueError(
+            f"{where}: task {task!r} is not a sonogym task (known: {sorted(TASKS)}); the file "
+            "was edited or not written by sonogym: restore it"
+        )
+    return task
+
+
 def check_algo(task: str, algo: str) -> TaskSpec:
     """The task's spec; raise ``ValueError`` for an unknown task or an algorithm the task does
     not support, naming the supported ones."""
@@ -39,6 +52,17 @@ def check_algo(task: str, algo: str) -> TaskSpec:
     if algo not in algos:
         raise ValueError(f"algorithm {algo!r} is not supported on {task}; supported: {list(algos)}")
     return spec
+
+
+def env_config(task: str, options: dict):
+    """The task's env config with ``options`` (its fields), built without building the env:
+    ``ValueError`` names an unknown option (with the valid ones) or a value the config
+    refuses, so a run can be checked before it starts."""
+    spec = get_task(task)
+    try:
+        return make_config(spec.config_cls, dict(options))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{task} env options: {e}") from None
 
 
 def make_vec(task: str, num_envs: int, **options):

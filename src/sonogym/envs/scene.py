@@ -22,13 +22,18 @@ from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator, si
 from sonogym.envs.patients import resolve_patients
 from sonogym.memory import return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
+from sonogym.ultrasound import randomization as imaging_rand
 from sonogym.ultrasound.slicer import PatientCrop
 
 #: CT window of the "ct" observation mode, HU -> [0, 1].
 CT_WINDOW = (-1000.0, 2000.0)
 
-#: m added on every side of a crop box: the reached probe pose may trail the clamped command.
+#: m added to the range of probe-face positions: the reached pose may trail the clamped command.
 REACH_MARGIN = 0.015
+#: m added on every side of the box of image pixels: the skin between the lattice nodes the box
+#: is taken on, and the reached pose off the skin. Random bang-bang actions over 600 steps came
+#: no closer than 29.5 mm to a box with 15 mm here.
+BOX_MARGIN = 0.005
 #: rad a probe arm may tilt the beam beyond the task's own tilt (tracking, settling).
 ARM_TILT_MARGIN = 0.1
 
@@ -48,7 +53,8 @@ def imaging_reach_boxes(
     grid: float = 0.002,
 ) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
     """Per patient, the (lo, hi) box of {P} (m) that contains every pixel of every probe image
-    within ``reach`` (plus ``REACH_MARGIN``): what a slicer must keep (``Slicer(crop_boxes=)``).
+    within ``reach`` (its face positions widened by ``REACH_MARGIN``, the box by
+    ``BOX_MARGIN``): what a slicer must keep (``Slicer(crop_boxes=)``).
 
     For a face centre s with beam n (unit), a pixel lies at s + d n + q, 0 <= d <= depth and q
     in the plane normal to n with |q| <= r (r: half the diagonal of the array and elevation
@@ -74,7 +80,7 @@ def imaging_reach_boxes(
                            np.maximum(np.sin(a_lo), np.sin(a_hi)))  # fmt: skip
         lo = s + np.minimum(0, probe.depth * n_lo) - r * sin_max
         hi = s + np.maximum(0, probe.depth * n_hi) + r * sin_max
-        boxes.append((lo.min(0) - REACH_MARGIN, hi.max(0) + REACH_MARGIN))
+        boxes.append((lo.min(0) - BOX_MARGIN, hi.max(0) + BOX_MARGIN))
     return boxes
 
 
@@ -142,6 +148,9 @@ class PatientScene:
         self.target_centres = self.target_centres_p[self.patient_index].float()
         self.probe_pos = torch.zeros(num_envs, 3, device=device)
         self.probe_rot = torch.eye(3, device=device).repeat(num_envs, 1, 1)
+        #: Per-episode imaging settings (``randomize_imaging``); None: images as simulated.
+        self.imaging_randomization: imaging_rand.ImagingRandomization | None = None
+        self.imaging_settings: torch.Tensor | None = None
 
     def _load_cropped(self, specs, spacing: float, target_vertebra: str):
         """([PatientModel], [PatientCrop]): each patient loaded, cropped for the slicer and
@@ -198,6 +207,27 @@ class PatientScene:
         self.patients = [p.model() if isinstance(p, Patient) else p for p in self.patients]
         return_freed_memory()
 
+    def randomize_imaging(self, value) -> None:
+        """Display each episode's images with settings drawn from ``value``'s ranges (a
+        config's ``imaging_randomization``; ``sonogym.ultrasound.randomization``), redrawn
+        per env by ``draw_imaging`` at its resets; False / None: images as simulated."""
+        self.imaging_randomization = imaging_rand.imaging_ranges(value)
+        self.imaging_settings = None
+        if self.imaging_randomization is not None:
+            dr = imaging_rand.NOMINAL_DYNAMIC_RANGE
+            if self.simulator_name == "physical":
+                dr = make_model("physical").dynamic_range
+            self.imaging_settings = imaging_rand.nominal(
+                self.num_envs, self.probe_geometry, dr, self.device
+            )
+
+    def draw_imaging(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
+        """New imaging settings for ``env_ids`` from uniforms ``u`` (K, 8) in [0, 1)."""
+        if self.imaging_randomization is not None:
+            self.imaging_settings[env_ids] = self.imaging_randomization.draw(
+                u.to(self.device, torch.float32)
+            )
+
     def draw_nets(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
         """Draw the learned net of each env in ``env_ids`` from uniforms ``u`` (see NetChoice)."""
         self.nets.draw(env_ids, u)
@@ -223,7 +253,17 @@ def image_observation(slices, mode: str, scene: PatientScene, env_ids=None) -> t
     learned one uses each env's net), "ct" the CT windowed from ``CT_WINDOW`` to [0, 1],
     "labels" the uint8 ids. ``env_ids``: the envs the slices belong to (None: all)."""
     if mode == "us":
-        return simulate_us(scene, slices, env_ids).float()
+        if scene.imaging_randomization is None:
+            return simulate_us(scene, slices, env_ids).float()
+        settings = scene.imaging_settings
+        settings = settings if env_ids is None else settings[env_ids]
+        probe, sim = scene.probe_geometry, scene.simulator
+        if scene.simulator_name == "physical":  # exact: on the envelope, before log compression
+            raw = sim.simulate_raw(slices)
+            return imaging_rand.randomized_display(raw, settings, probe, sim.model.gain)
+        return imaging_rand.randomized_from_display(
+            simulate_us(scene, slices, env_ids).float(), settings, probe
+        )
     if mode == "ct":
         lo, hi = CT_WINDOW
         return ((slices.ct - lo) / (hi - lo)).clamp(0, 1)

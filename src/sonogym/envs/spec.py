@@ -21,6 +21,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from sonogym.envs.base import check_number_fields
+
 ExpertFn = Callable[[Any, dict[str, Any]], torch.Tensor]
 
 #: Conv layers of an image trunk: (out_channels, kernel, stride) per layer.
@@ -46,6 +48,9 @@ class Metric:
     unit: str
     scale: float = 1.0
     better: Literal["lower", "higher"] = "lower"
+    #: Evaluation tables also count the episodes within this of the goal (in the env's unit,
+    #: on the ``better`` side), e.g. navigation's 10 mm; None: no such count.
+    tolerance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -140,6 +145,9 @@ class PPOParams:
     entropy_loss_scale: float = 0.0  # reference
     time_limit_bootstrap: bool = True  # see sonogym.agents.configs
 
+    def __post_init__(self) -> None:
+        check_algo_params(self, ("rollouts", "learning_epochs", "mini_batches"))
+
 
 @dataclass(frozen=True)
 class A2CParams:
@@ -155,6 +163,28 @@ class A2CParams:
     grad_norm_clip: float = 1.0
     entropy_loss_scale: float = 0.0
     time_limit_bootstrap: bool = True
+
+    def __post_init__(self) -> None:
+        check_algo_params(self, ("rollouts", "mini_batches"))
+
+
+def check_algo_params(p: PPOParams | A2CParams, counts: tuple[str, ...]) -> None:
+    """Refuse settings no run can train with, naming the field: counts below 1, a learning rate
+    that is not positive, a discount or GAE lambda outside [0, 1], a negative clip, and any
+    NaN, inf or non-integer count (``check_number_fields``)."""
+    check_number_fields(p)
+    name = type(p).__name__
+    for f in counts:
+        if getattr(p, f) < 1:
+            raise ValueError(f"{name}.{f} must be >= 1, got {getattr(p, f)}")
+    if not p.learning_rate > 0:
+        raise ValueError(f"{name}.learning_rate must be > 0, got {p.learning_rate}")
+    for f in ("discount_factor", "gae_lambda"):
+        if not 0 <= getattr(p, f) <= 1:
+            raise ValueError(f"{name}.{f} must be in [0, 1], got {getattr(p, f)}")
+    for f in ("kl_threshold", "grad_norm_clip", "value_clip", "ratio_clip", "value_loss_scale"):
+        if getattr(p, f, 0) < 0:
+            raise ValueError(f"{name}.{f} must be >= 0, got {getattr(p, f)}")
 
 
 @dataclass(frozen=True)
@@ -209,6 +239,19 @@ class TrainingDefaults:
 
 
 @dataclass(frozen=True)
+class EnvMemory:
+    """A task env's resident memory, measured on the CPU as the RSS growth of a fresh process
+    that builds the env with its default options and steps it with the expert
+    (``sonogym.envs.footprint`` documents the runs): bytes per env, bytes per patient at 1 mm
+    voxels, and the transient of loading one patient at 1 mm. The patient terms scale with the
+    voxel count, (1 mm / spacing)^3."""
+
+    per_env: float  # bytes
+    per_patient: float  # bytes at 1 mm voxels
+    load_peak: float  # bytes at 1 mm voxels
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """Everything the rest of the package knows about a task (see the module docstring).
 
@@ -227,6 +270,7 @@ class TaskSpec:
     track: Track
     demo: Demo
     training: TrainingDefaults
+    memory: EnvMemory  # what ``sonogym.envs.footprint`` estimates a run's memory from
     dataset: DatasetSpec | None = None
     # per obs_mode, the version of what the observation means (absent: 1); bumped when it
     # changes, so a policy trained on an older one is refused instead of silently misread

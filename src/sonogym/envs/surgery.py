@@ -21,12 +21,10 @@ drill tip pose in {U}: position (m) + quaternion (w, x, y, z). ``"ct"``: the ima
 volume windowed from [-1000, 2000] HU to [0, 1]; ``"labels"``: the label volume, uint8.
 ``"state"``: the privileged state (9,): the tip position in {G} (m) and the drill's axes x_D
 and z_D in {G} (unit vectors, the first and third columns of R_GD), a continuous encoding of
-the pose; ``info["state"]`` keeps position + rotation vector. (A first version observed
-``info["state"]`` itself. Its rotation vector jumps where its angle reaches 180 deg, and the
-drill's free spin about its axis starts near 90 deg and drifts: one PPO seed of three drove it
-there and lost control of the tilt, docs/results.md. The goal and z_G seen from the drill, a
-spin-free 6-D alternative, trained worse: the corridor's lateral offset then mixes with the
-tilt times the distance.)
+the pose; ``info["state"]`` keeps position + rotation vector. (Why not the rotation vector:
+it jumps where its angle reaches 180 deg, and the drill's free spin about its own axis starts
+near 90 deg and drifts there. Why not the goal and z_G seen from the drill, which has no spin:
+the corridor's lateral offset then mixes with the tilt times the distance.)
 The probe is still and the drill is not imaged, so the volume changes only at resets.
 
 **Actions.** (dp, dw) in {D}, unitless, (6,): scaled by ``action_scale`` (0.1 m, 0.1 m, 0.1 m,
@@ -37,9 +35,9 @@ translation (x_D, y_D) and all three rotation components are then multiplied by
 corridor moves 5x slower sideways than along the drill axis. The drill-tip target is the
 reached tip pose composed with the body-frame increment: T_target = T_tip (dp, exp(dw)),
 its position then kept within ``workspace_radius`` (0.3 m) of {G}'s origin, or within the tip's
-current distance where a start lies further out (a start is never pulled in). (The reference
-zeroes every action 0.5 m before the corridor, which freezes the drill there; without any bound,
-PPO's stochastic drills wandered up to 0.7 m from the target in collapsing runs.) The
+current distance where a start lies further out (a start is never pulled in): an exploring
+policy cannot wander off, and no action is zeroed (the reference zeroes every action 0.5 m
+before the corridor, which freezes the drill there). The
 KUKA takes one velocity-limited IK step toward it, so a command faster than the joints allow
 leaves a tracking error (``info["tracking_error"]``).
 
@@ -57,14 +55,13 @@ within C_drill the paper's w6 (|p_t| - |p_t+1|) + w5 (...); the two agree at p_l
 
 **Deviation from the paper** (DESIGN.md §5, amended): the paper pays 0 outside the safe set.
 That makes leaving free, and with the drill's reach a constant "push along the drill axis"
-ended its episodes outside the safe set with +1.22 (another seed set: +0.69), more than
-standing still (0); the reference avoided the trap with dense shaping everywhere. Here the
-unsafe region keeps the C_free formula's shaping toward p_l (the reference's dense term), so
-leaving the corridor gives back everything the insertion earned, and each unsafe step costs
-``unsafe_penalty`` (0.3) more. (At 0.1, PPO seeds drifted into pushing through the target and
-beyond, 600 unsafe steps costing only 60; at 1.0, one state seed in three learned to hover
-above the corridor's entrance rather than risk crossing it; at 0.3 all three entered the
-corridor and ended safe in >= 99.6 % of their steps; docs/results.md.)
+ends its episodes outside the safe set with more return than standing still (0); the
+reference avoided the trap with dense shaping everywhere. Here the unsafe region keeps the
+C_free formula's shaping toward p_l (the reference's dense term), so leaving the corridor
+gives back everything the insertion earned, and each unsafe step costs ``unsafe_penalty``
+(0.3) more: enough that pushing through the target does not pay, small enough that crossing
+the corridor's entrance is worth the risk (docs/envs.md, "Deviation from the paper's 0
+otherwise", gives the measured returns).
 Being paid for the current state (not the deepest point reached, as a guard on the paper's
 formula did before) means backing out of the corridor gives back what going in earned.
 Consequences, tested: no closed path earns reward (a potential; a loop through the unsafe
@@ -72,20 +69,21 @@ region loses 0.3 per unsafe step), pushing along the drill axis or leaving the c
 staying out earns less than standing still, unit-noise dithering earns less than standing
 still, reaching depth and backing out earns less than staying, and the expert's return is the
 largest of these. The C_free side of the corridor's
-entrance has no step: a first version that valued unsafe states w6 l = 15 lower made every
-misaligned crossing of p_l's plane a cliff, and PPO (sigma 0.05, 5 mm noise against an 11 mm
-corridor) learned to hover above p_l (return 3.7, insertion error 55-60 mm, 0.5 M env steps).
+entrance has no step: valuing unsafe states lower would make every misaligned crossing of
+p_l's plane a cliff, which an exploring policy (5 mm noise against an ~11 mm corridor) learns
+to hover above.
 Optional (off by default): ``unsafe_distance_penalty`` k (per m) adds k min(dist, cap) per
 unsafe step, dist the tip's distance from the safe set (``distance_to_safe_set``) and cap
 ``unsafe_distance_cap`` (10 mm). A potential cannot tell paths apart, so with the flat
 penalty alone a drill that dives beside the corridor below p_l's plane and slides in at depth
-earns all the insertion minus 0.3 per unsafe step, which a discount can outweigh; a PPO state
-seed did this (unsafe steps a median 10 mm aside, 27 mm before the target). Uncapped at
-k = w6 a PPO run hovered above the corridor (safe, ~100 mm off after 40 k steps; early random
-walks deep in the unsafe region cost up to 90 per step); docs/results.md has the capped runs.
+earns all the insertion minus 0.3 per unsafe step, which a discount can outweigh; the
+distance term charges that path more than grazing the entrance. The cap keeps the early random
+walks deep in the unsafe region from costing so much (up to 90 per step at k = w6 uncapped)
+that a policy learns to stay out of the corridor.
 Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
 The ``cpu`` training preset trains with w5 = 50 per rad (``SPEC.training.env_kwargs_cpu``): at
-the paper's 5 the tilt barely counts and state policies ended 4-5 deg off (docs/envs.md).
+the paper's 5, 4 deg of tilt cost what 1.2 mm of insertion earns, too little to make a policy
+hold the drill aligned (docs/envs.md, "Tilt weight of the cpu training preset").
 
 **Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
 by IK (``obs_mode="state"`` observes no image: there the offset is drawn, so every mode gets the
@@ -118,7 +116,8 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
+from sonogym.envs.base import SingleEnv, TorchVectorEnv, check_number_fields, make_config
+from sonogym.envs.footprint import check_env_fits
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
 from sonogym.envs.spec import (
     CONV3,
@@ -127,6 +126,7 @@ from sonogym.envs.spec import (
     DatasetPreset,
     DatasetSpec,
     Demo,
+    EnvMemory,
     Feature,
     Metric,
     PPOParams,
@@ -142,6 +142,7 @@ from sonogym.geometry import (
     matrix_from_axis_angle,
     quat_from_matrix,
 )
+from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 ObsMode = Literal["us", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
@@ -165,6 +166,8 @@ class SurgeryConfig:
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
     crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
+    imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
+    # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
     obs_mode: ObsMode = "us"
     device: str = "cpu"
     episode_length: int = 600  # control steps (paper)
@@ -196,6 +199,10 @@ class SurgeryConfig:
     workspace_radius: float = 0.3  # m: no command takes the tip further from {G}'s origin
 
     def __post_init__(self) -> None:
+        check_number_fields(self)
+        object.__setattr__(
+            self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
+        )
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode {self.obs_mode!r} is not one of {OBS_MODES}")
         if self.side not in SIDES:
@@ -404,6 +411,7 @@ class SurgeryEnv(TorchVectorEnv):
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         cfg = make_config(SurgeryConfig, kwargs)
         super().__init__(num_envs, cfg.device, cfg.episode_length)
+        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
         self.cfg = cfg
         self.scene = SurgeryScene(
             cfg.patients,
@@ -460,6 +468,7 @@ class SurgeryEnv(TorchVectorEnv):
         self._safe_steps = torch.zeros(n, **f32)
         self._tracking_error = torch.zeros(n, **f32)
         self.start_redraws = torch.zeros(n, dtype=torch.long, device=dev)
+        self.scene.randomize_imaging(cfg.imaging_randomization)
         self.scene.release_volumes()
 
     # ------------------------------------------------------------------ hooks
@@ -498,6 +507,8 @@ class SurgeryEnv(TorchVectorEnv):
         self._tracking_error[env_ids] = 0.0
         if cfg.simulator == "learned":  # last, so the other draws match model-based runs
             sc.draw_nets(env_ids, self.rand(k))
+        if sc.imaging_randomization is not None:  # after: draws above stay the same
+            sc.draw_imaging(env_ids, self.rand(k, 8))
         # The probe is still for the episode: image the volume once (it does not see the drill).
         if cfg.obs_mode != "state":
             self._image[env_ids] = sc.observe(cfg.obs_mode, env_ids)
@@ -650,6 +661,7 @@ SPEC = TaskSpec(
     demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
     # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
+    memory=EnvMemory(per_env=0.81e6, per_patient=127e6, load_peak=136e6),  # measured, bytes
     training=TrainingDefaults(
         algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),
         ppo=PPOParams(
@@ -672,9 +684,8 @@ SPEC = TaskSpec(
         bounded_mean=True,
         # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
         stagger_episodes=True,
-        # mean_bound_penalty stays 0: at 10 (networks.SharedActorCritic) seed 1 no longer ran
-        # its rotation means out of the box, but seed 2 collapsed anyway and seed 0 stalled
-        # (docs/results.md, 2026-11-25)
+        # mean_bound_penalty stays 0: bounded_mean keeps the means in the box already, and the
+        # penalty alone did not keep seeds from collapsing (networks.SharedActorCritic)
         standardize_vectors=True,  # poses in metres: mm differences at order 1
         # ... with statistics frozen after 30 k steps: drifting statistics under a learning
         # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
@@ -685,8 +696,7 @@ SPEC = TaskSpec(
             rollouts=32, learning_epochs=5, mini_batches=4, learning_rate=3e-4, value_clip=0.1
         ),
         # w5 = 50 per rad, 10x the paper's (the env's default stays 5): at 5, 4 deg of tilt
-        # costs 0.35, a 1.2 mm insertion's worth, and state policies ended in a 4-5 deg limit
-        # cycle of saturated rotations (2 seeds of 3); at 50 they held < 1 deg (docs/results.md)
+        # costs 0.35, a 1.2 mm insertion's worth, too little for a policy to centre its tilt
         env_kwargs_cpu={"w5": 50.0},
         vector_splits={"pose": (("pos", 3), ("quat", 4))},
         safety=SafetyParams(),

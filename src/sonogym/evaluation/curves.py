@@ -24,19 +24,21 @@ from sonogym.evaluation.trained import load_run
 from sonogym.runs import atomic_write_text
 
 DEFAULT_METRIC = "Episode / return"
-#: Plot labels of the algorithms (paper's names).
+#: Plot labels of the RL algorithms (paper's names); imitation policies' labels are in their
+#: registry (``sonogym.imitation.policies.registry``).
 ALGO_LABELS = {
     "ppo": "PPO",
     "a2c": "A2C",
     "ppo-sf": "PPO + SF",
     "ppo-lag": "PPO-Lag",
-    "act": "ACT",
-    "dp": "DP",
 }
 
 
 def algo_label(algo: str) -> str:
-    return ALGO_LABELS.get(algo, algo)
+    from sonogym.imitation.policies.registry import policy_for_algo
+
+    spec = policy_for_algo(algo)
+    return spec.label if spec is not None else ALGO_LABELS.get(algo, algo)
 
 
 def curve_label(c: Curve) -> str:

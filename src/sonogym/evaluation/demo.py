@@ -20,6 +20,7 @@ import numpy as np
 from sonogym.envs.policy import ExpertPolicy
 from sonogym.envs.registry import get_task, make_vec, task_names
 from sonogym.envs.rollout import rollout
+from sonogym.evaluation.trained import load_run, run_policy
 from sonogym.runs import atomic_write_text
 
 
@@ -32,39 +33,62 @@ def run_demo(
     patients: tuple | None = None,
 ) -> dict:
     """Run the demo and return the metrics table (also written to ``out``). ``patients``:
-    phantom seeds and/or TotalSegmentator subject folders (default: the tasks' phantom 0)."""
+    phantom seeds and/or TotalSegmentator subject folders (default: the tasks' phantom 0).
+    Where a trained policy of a task ships with sonogym (``sonogym eval --pretrained list``),
+    it runs the same episode starts beside the expert."""
+    from sonogym.evaluation import pretrained as shipped
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
+    over = {"patients": patients} if patients else {}
     for name in tasks or task_names():
         task = get_task(name)
-        t0 = time.perf_counter()
-        env = make_vec(name, num_envs, **({"patients": patients} if patients else {}))
-        frames, paths = [], []
-        sheet = []
-        final = None
-        for step in rollout(env, ExpertPolicy(env, task.expert), env.episode_length, seed=seed):
-            if step.final_info is not None:
-                final = step.final_info
-                img = task.demo.image(step.final_obs)
-            else:
-                img = task.demo.image(step.next_obs)
-            paths.append(task.demo.point(env, step.next_info) if final is None else paths[-1])
-            frames.append(task.demo.frame(env, img, np.array(paths)))
-            t = step.t
-            if t % max(1, env.episode_length // 8) == 0 or final is not None:
-                sheet.append((t + 1, img.cpu().numpy()))
-        if final is None:
-            raise RuntimeError(f"{name}: the episode did not end within {env.episode_length} steps")
-        metrics = {k: _mean_std(final[k]) for k in (*task.metric_keys, "return")}
-        results[name] = {"envs": num_envs, "seconds": time.perf_counter() - t0, "metrics": metrics}
-        _write_sheet(out / f"{name}_frames.png", sheet, name)
-        _write_video(out / f"{name}.mp4", frames)
-        log(f"{name}: {', '.join(f'{k} {m:.2f} ± {s:.2f}' for k, (m, s) in metrics.items())}")
+        env = make_vec(name, num_envs, **over)
+        runs = [(name, task.expert_label, env, ExpertPolicy(env, task.expert))]
+        for policy_name in shipped.available():
+            run = load_run(shipped.pretrained_dir(policy_name))
+            if run.task != name:
+                continue
+            kw = {**run.env_kwargs, **over, "imaging_randomization": False}
+            penv = make_vec(name, num_envs, **kw)
+            policy = run_policy(run, penv, shipped.weights(policy_name))
+            runs.append((f"{name}_pretrained-{policy_name}", f"pretrained {policy_name}", penv,
+                         policy))  # fmt: skip
+        for key, label, e, policy in runs:
+            t0 = time.perf_counter()
+            final, sheet, frames = _episode(e, policy, task, seed, name)
+            metrics = {k: _mean_std(final[k]) for k in (*task.metric_keys, "return")}
+            results[key] = {"controller": label, "envs": num_envs,
+                            "seconds": time.perf_counter() - t0, "metrics": metrics}  # fmt: skip
+            _write_sheet(out / f"{key}_frames.png", sheet, f"{name} ({label})")
+            _write_video(out / f"{key}.mp4", frames)
+            log(f"{name} ({label}): "
+                + ", ".join(f"{k} {m:.2f} ± {s:.2f}" for k, (m, s) in metrics.items()))  # fmt: skip
     atomic_write_text(out / "metrics.json", json.dumps(results, indent=1))
     atomic_write_text(out / "metrics.md", _markdown(results))
     log(f"wrote {out}/metrics.md, metrics.json, *_frames.png, *.mp4")
     return results
+
+
+def _episode(env, policy, task, seed: int, name: str):
+    """One episode of every env: (final metrics, frame sheet, video frames of env 0)."""
+    frames, paths, sheet = [], [], []
+    final = None
+    for step in rollout(env, policy, env.episode_length, seed=seed):
+        if step.final_info is not None:
+            final = step.final_info
+            img = task.demo.image(step.final_obs)
+        else:
+            img = task.demo.image(step.next_obs)
+        paths.append(task.demo.point(env, step.next_info) if final is None else paths[-1])
+        frames.append(task.demo.frame(env, img, np.array(paths)))
+        t = step.t
+        if t % max(1, env.episode_length // 8) == 0 or final is not None:
+            sheet.append((t + 1, img.cpu().numpy()))
+    if final is None:
+        raise RuntimeError(f"{name}: the episode did not end within {env.episode_length} steps")
+    return final, sheet, frames
 
 
 def _write_video(path: Path, frames: list[np.ndarray], fps: int = 30) -> None:
@@ -102,8 +126,9 @@ def _write_sheet(path: Path, sheet: list[tuple[int, np.ndarray]], name: str) -> 
 
 
 def _markdown(results: dict) -> str:
-    lines = ["| task | metric | mean | std |", "|---|---|---|---|"]
-    for task, r in results.items():
+    lines = ["| task | controller | metric | mean | std |", "|---|---|---|---|---|"]
+    for key, r in results.items():
+        task = key.split("_pretrained-")[0]
         for k, (m, s) in r["metrics"].items():
-            lines.append(f"| {task} | {k} | {m:.3f} | {s:.3f} |")
+            lines.append(f"| {task} | {r['controller']} | {k} | {m:.3f} | {s:.3f} |")
     return "\n".join(lines) + "\n"

@@ -4,7 +4,9 @@ figures can be regenerated without rerunning anything.
 A log is ``<run>/episodes/<protocol>.npz`` (NumPy, no pickles) holding:
 
 * ``meta``: a JSON string: ``format`` (1), ``task``, ``algo``, ``run`` (folder name),
-  ``train_seed``, ``protocol``, ``eval_seed``, ``trials``, ``controllers``, ``checkpoint``,
+  ``train_seed``, ``protocol``, ``eval_seed``, ``trials``, ``num_envs`` (episode k ran in env
+  k % num_envs, so on the test env's patient (k % num_envs) % P; absent in logs written
+  before it was recorded), ``controllers``, ``checkpoint``,
   ``train_env`` / ``test_env`` (the env options of training and of this test),
   ``track_columns`` and ``track_units``;
 * ``<controller>/<metric>``: (trials,) float32, the task's episode metrics (``return``

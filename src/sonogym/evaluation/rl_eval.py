@@ -15,7 +15,8 @@ starts and returns the task's metrics (mean and std over episodes):
 The table is written to ``<run>/eval.json`` and ``<run>/eval.md`` (``eval-<protocol>.*`` for
 the out-of-domain protocols), every episode's metrics and trajectory to
 ``<run>/episodes/<protocol>.npz`` (``sonogym.evaluation.episodes``) and a trajectory figure to
-``<run>/trajectories-<protocol>.png``.
+``<run>/trajectories-<protocol>.png``; ``out`` puts them into another folder instead (a run
+that cannot be written to). That the folder takes them is checked before any episode runs.
 """
 
 from __future__ import annotations
@@ -25,12 +26,15 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, run_policy
 from sonogym.runs import atomic_write_text, to_jsonable
 
 CONTROLLERS = ("policy", "expert", "random")
+#: Parallel envs of an evaluation unless given (at most one per trial).
+DEFAULT_ENVS = 16
 #: a ``ppo-sf`` run's policy without its safety filter (the PPO it trained: the filter acts
 #: only at test time), evaluated beside the filtered one by default
 UNFILTERED = "unfiltered"
@@ -50,6 +54,7 @@ def evaluate_run(
     checkpoint: str | Path | None = None,
     safety_filter: dict[str, Any] | None = None,
     name: str | None = None,
+    out: str | Path | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
@@ -68,7 +73,8 @@ def evaluate_run(
 
     Writes ``eval.json`` / ``eval.md`` (``eval-<protocol>.*`` for other than ``idt``), the
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
-    ``trajectories-<protocol>.png``.
+    ``trajectories-<protocol>.png`` into ``out`` (default: the run folder), which must be
+    writable: checked before the episodes run.
     """
     from sonogym.envs.registry import get_task
     from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
@@ -98,8 +104,10 @@ def evaluate_run(
         )
     overrides.update(env_overrides or {})
     name = name or protocol or ("custom" if env_overrides else "idt")
+    dest = check_writable(Path(out) if out is not None else trained.path, name)
 
     filt = check_safety_filter(trained, safety_filter)
+    envs = min(trials, envs or DEFAULT_ENVS)
     episodes = run_controllers(
         trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint,
         safety_filter=filt,
@@ -111,6 +119,7 @@ def evaluate_run(
         }
         for c, ep in episodes.items()
     }
+    spread = {c: distribution(trained.task, ep["metrics"]) for c, ep in episodes.items()}
     track = get_task(trained.task).track
     meta = {
         "task": trained.task,
@@ -120,6 +129,7 @@ def evaluate_run(
         "protocol": name,
         "eval_seed": seed,
         "trials": trials,
+        "num_envs": envs,  # episode k ran in env k % num_envs: on patient (k % num_envs) % P
         "controllers": list(episodes),
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
@@ -128,15 +138,14 @@ def evaluate_run(
         "track_columns": list(track.columns),
         "track_units": list(track.units),
     }
-    run = trained.path
     log = save_log(
-        log_path(run, name),
+        log_path(dest, name),
         meta,
         {c: ep["metrics"] for c, ep in episodes.items()},
         {c: ep["track"] for c, ep in episodes.items()},
     )
     if plot:
-        plot_trajectories(load_log(log), run / f"trajectories-{name}.png")
+        plot_trajectories(load_log(log), dest / f"trajectories-{name}.png")
     stem = "eval" if name == "idt" else f"eval-{name}"
     table = {
         "task": trained.task,
@@ -147,10 +156,51 @@ def evaluate_run(
         **({"safety_filter": filt} if filt else {}),
         "env_overrides": to_jsonable(overrides),
         "results": results,
+        "distribution": spread,
     }
-    atomic_write_text(run / f"{stem}.json", json.dumps(table, indent=1))
-    atomic_write_text(run / f"{stem}.md", format_table(results))
+    atomic_write_text(dest / f"{stem}.json", json.dumps(table, indent=1))
+    atomic_write_text(dest / f"{stem}.md", format_table(results, spread))
     return results
+
+
+def distribution(task: str, metrics: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """Per metric over episodes: the median and, for a metric with a ``tolerance``, the
+    fraction of episodes within it (``within``)."""
+    from sonogym.envs.registry import get_task
+
+    tol = {m.key: m for m in get_task(task).metrics if m.tolerance is not None}
+    out = {}
+    for k, v in metrics.items():
+        v = np.asarray(v, dtype=np.float64)
+        d = {"median": float(np.median(v))}
+        if k in tol:
+            m = tol[k]
+            ok = v <= m.tolerance if m.better == "lower" else v >= m.tolerance
+            d["within"] = float(ok.mean())
+            d["tolerance"] = m.tolerance
+        out[k] = d
+    return out
+
+
+def check_writable(folder: Path, name: str) -> Path:
+    """``folder`` (created if absent) after checking that the evaluation's files can be
+    written there (a test file in it and in its ``episodes/``), so that a read-only run folder
+    is refused before its episodes run, not after."""
+    import tempfile
+
+    from sonogym.evaluation.episodes import log_path
+
+    for where in (folder, log_path(folder, name).parent):
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=where):
+                pass
+        except OSError as e:
+            raise ValueError(
+                f"cannot write the evaluation into {where} ({e.strerror or e}); give --out "
+                "FOLDER (evaluate_run(out=...)) for its table, episode log and figure"
+            ) from None
+    return folder
 
 
 def check_safety_filter(trained: TrainedRun, settings: dict[str, Any] | None) -> dict[str, Any]:
@@ -233,8 +283,10 @@ def run_controllers(
     from sonogym.evaluation.episodes import run_episodes
 
     trained = run if isinstance(run, TrainedRun) else load_run(run)
-    env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device}
-    env = make_vec(trained.task, min(trials, envs or 16), **env_kwargs)
+    # evaluation images as simulated: training's per-episode imaging settings stay in training
+    env_kwargs = {**trained.env_kwargs, **(env_overrides or {}), "device": device,
+                  "imaging_randomization": False}  # fmt: skip
+    env = make_vec(trained.task, min(trials, envs or DEFAULT_ENVS), **env_kwargs)
     out = {
         name: run_episodes(
             env, controller_policy(name, env, trained, seed, device, checkpoint, safety_filter),
@@ -246,11 +298,27 @@ def run_controllers(
     return out
 
 
-def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
-    """Markdown table: one row per controller, mean ± std per metric."""
+def format_table(
+    results: dict[str, dict[str, tuple[float, float]]],
+    spread: dict[str, dict[str, dict[str, float]]] | None = None,
+) -> str:
+    """Markdown table: one row per controller, mean ± std per metric; with ``spread``
+    (``distribution``) also the median and the share of episodes within a metric's tolerance."""
     metrics = sorted({k for r in results.values() for k in r})
     lines = ["| controller | " + " | ".join(metrics) + " |", "|---" * (len(metrics) + 1) + "|"]
     for name, r in results.items():
-        cells = [f"{r[k][0]:.3f} ± {r[k][1]:.3f}" if k in r else "-" for k in metrics]
+        cells = []
+        for k in metrics:
+            if k not in r:
+                cells.append("-")
+                continue
+            cell = f"{r[k][0]:.3f} ± {r[k][1]:.3f}"
+            d = (spread or {}).get(name, {}).get(k)
+            if d is not None:
+                cell += f" (median {d['median']:.3f}"
+                if "within" in d:
+                    cell += f"; {100 * d['within']:.0f} % within {d['tolerance']:g}"
+                cell += ")"
+            cells.append(cell)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

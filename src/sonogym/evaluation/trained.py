@@ -1,11 +1,13 @@
 """A trained run folder, RL (``sonogym train``) or imitation learning (``sonogym il-train``),
 seen the same way by evaluation, plots and reports: its task, algorithm, seed, the env options
-it was trained on, and its policy acting in an env.
+it was trained on, its checkpoints and its policy acting in an env.
 
-RL runs' ``config.json`` is ``TrainConfig.to_dict`` plus layout fields; IL runs' has
-``kind`` "sonogym-il-run" and the task and env options of the dataset it learned from (for an
-IL run, the training env is the one the expert dataset was recorded in, without the data
-collection's wider starts).
+The folder is read through ``sonogym.runs.RunFolder``; its ``RunKind`` (RL:
+``agents.checkpoint.RL_RUN``; IL: ``imitation.run.IL_RUN``, whose config.json says ``kind``
+"sonogym-il-run") checks its config.json and reads its checkpoints. RL runs' config.json is
+``TrainConfig.to_dict`` plus layout fields; IL runs' holds the task and env options of the
+dataset it learned from (for an IL run, the training env is the one the expert dataset was
+recorded in, without the data collection's wider starts).
 """
 
 from __future__ import annotations
@@ -14,9 +16,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sonogym.runs import lists_to_tuples, read_json
+from sonogym.runs import RunFolder, RunKind, lists_to_tuples, open_run
 
-IL_KIND = "sonogym-il-run"
+
+def run_kinds() -> tuple[RunKind, ...]:
+    """The kinds of training run evaluation reads (imported here, not at module import: the
+    RL side loads skrl)."""
+    from sonogym.agents.checkpoint import RL_RUN
+    from sonogym.imitation.run import IL_RUN
+
+    return RL_RUN, IL_RUN
 
 
 @dataclass(frozen=True)
@@ -24,7 +33,7 @@ class TrainedRun:
     path: Path
     kind: str  # "rl" or "il"
     task: str
-    algo: str  # ppo, a2c, ppo-sf, ppo-lag; act, dp
+    algo: str  # ppo, a2c, ppo-sf, ppo-lag; an imitation policy's algo (act, dp)
     seed: int
     env_kwargs: dict[str, Any]  # env options of training (tuples)
     config: dict[str, Any]  # the whole config.json
@@ -34,47 +43,29 @@ class TrainedRun:
         """Parallel envs of RL training (None for IL)."""
         return self.config.get("num_envs")
 
+    @property
+    def folder(self) -> RunFolder:
+        return RunFolder(self.path, next(k for k in run_kinds() if k.name == self.kind))
+
 
 def load_run(run: str | Path) -> TrainedRun:
     """The run folder's ``TrainedRun``, with a clear error for a folder that is not one."""
-    run = Path(run)
-    cfg = read_json(run / "config.json", "`sonogym train` / `il-train` run folder", ("task",))
-    if cfg.get("kind") == IL_KIND:
-        if not cfg.get("task"):
-            raise ValueError(
-                f"{run} was trained on a dataset not recorded by sonogym (no task known); "
-                "evaluate it with load_il_policy and your own env"
-            )
-        env = cfg.get("env_kwargs", {})
-        return TrainedRun(run, "il", cfg["task"], cfg["algo"], int(cfg.get("seed", 0)),
-                          lists_to_tuples(env), cfg)  # fmt: skip
-    from sonogym.agents.checkpoint import run_config
-
-    cfg = run_config(run)  # checks the RL keys
-    env = cfg["task_config"]["env_kwargs"]
-    return TrainedRun(run, "rl", cfg["task"], cfg["algo"], int(cfg["seed"]),
-                      lists_to_tuples(env), cfg)  # fmt: skip
+    folder = open_run(run, run_kinds())
+    cfg = folder.config()  # checked as evaluation needs it
+    env = lists_to_tuples(folder.kind.env_kwargs(cfg))
+    return TrainedRun(folder.path, folder.kind.name, cfg["task"], cfg["algo"],
+                      int(cfg.get("seed", 0)), env, cfg)  # fmt: skip
 
 
 def newest_checkpoint(run: TrainedRun, warn=None) -> Path:
     """The checkpoint evaluation uses by default: the newest readable one."""
-    if run.kind == "il":
-        from sonogym.imitation.run import newest_readable_checkpoint
-
-        found = newest_readable_checkpoint(run.path, warn=warn)
-        if found is None:
-            raise FileNotFoundError(f"no readable checkpoints/step_*.pt in {run.path}")
-        return found[0]
-    from sonogym.agents.checkpoint import latest_readable_checkpoint
-
-    found = latest_readable_checkpoint(run.path, warn)
-    if found is None:
-        raise FileNotFoundError(f"no readable checkpoints/agent_<t>.pt in {run.path}")
-    return found[0]
+    return run.folder.require_checkpoint(warn=warn).path
 
 
 def run_policy(run: TrainedRun, env, checkpoint: str | Path | None = None, device="cpu"):
-    """The run's trained ``Policy`` acting in ``env`` (an env of its task)."""
+    """The run's trained ``Policy`` acting in ``env`` (an env of its task): an RL policy reads
+    the env's observations through its adapter, an IL policy through the task's dataset
+    features."""
     if run.kind == "il":
         from sonogym.imitation.policy import load_il_policy
         from sonogym.imitation.record import obs_to_features

@@ -186,7 +186,7 @@ def new_info(
     features: dict[str, dict[str, Any]],
     robot_type: str | None,
     chunks_size: int,
-    data_files_size_in_mb: int,
+    data_files_size_in_mb: int = DEFAULT_DATA_FILES_SIZE_IN_MB,
 ) -> dict[str, Any]:
     """``info.json`` of an empty dataset (LeRobot 0.4's key set and order)."""
     if int(fps) != fps or fps <= 0:

@@ -4,13 +4,13 @@
 ``obs_to_features(obs, info) -> {key: tensor}`` (keys as in the dataset:
 ``observation.images.<name>`` float (N, C, H, W) in [0, 1], ``observation.state`` (N, D)),
 and returns (N, A) actions in the dataset's action units on the features' device. Per-env
-state, batched over envs:
+state, batched over envs, as the model's config asks (``ILConfig``):
 
-* ACT with ``temporal_ensemble_coeff``: a new chunk every step, executed through the temporal
-  ensemble (``buffers.TemporalEnsembler``); without: chunks of ``n_action_steps`` actions from
-  a per-env queue, a new chunk only for the envs whose queue ran out.
-* Diffusion Policy: the last ``n_obs_steps`` observations per env (a reset env's first
-  observation fills its history) and a queue of ``n_action_steps`` actions per env.
+* ``temporal_ensemble_coeff`` set (ACT's default): a new chunk every step, executed through
+  the temporal ensemble (``buffers.TemporalEnsembler``); unset: chunks of ``n_action_steps``
+  actions from a per-env queue, a new chunk only for the envs whose queue ran out.
+* ``observation_steps`` n (Diffusion Policy: ``n_obs_steps``): the last n observations per env
+  (a reset env's first observation fills its history); None (ACT): the current one.
 
 ``reset(env_mask)`` clears that state for the masked envs only (all envs for None).
 """
@@ -23,9 +23,8 @@ from typing import Any
 
 import torch
 
-from sonogym.imitation.act import ACTPolicy
 from sonogym.imitation.buffers import ActionQueue, ObsHistory, TemporalEnsembler
-from sonogym.imitation.diffusion import DiffusionPolicy
+from sonogym.imitation.policies.base import ILModel
 from sonogym.imitation.processor import STATE_KEY
 from sonogym.imitation.run import load_model
 
@@ -33,17 +32,18 @@ ObsToFeatures = Callable[[Any, dict[str, Any]], dict[str, torch.Tensor]]
 
 
 class ILPolicy:
-    """A trained ACT / Diffusion Policy model acting in a batched env (see the module doc).
+    """A trained IL model acting in a batched env (see the module doc).
 
     Args:
-        model: ``ACTPolicy`` or ``DiffusionPolicy`` (eval mode is set here).
+        model: an ``ILModel`` (ACT, Diffusion Policy, ...; eval mode is set here).
         obs_to_features: the task's observation -> dataset-feature conversion.
-        seed: seed of Diffusion Policy's sampling noise.
+        seed: seed of the model's sampling noise (Diffusion Policy's).
     """
 
-    def __init__(self, model: torch.nn.Module, obs_to_features: ObsToFeatures, seed: int = 0):
-        if not isinstance(model, ACTPolicy | DiffusionPolicy):
-            raise TypeError(f"expected ACTPolicy or DiffusionPolicy, got {type(model).__name__}")
+    def __init__(self, model: ILModel, obs_to_features: ObsToFeatures, seed: int = 0):
+        if not isinstance(model, ILModel):
+            raise TypeError(f"expected an imitation-learning model (ILModel), got "
+                            f"{type(model).__name__}")  # fmt: skip
         self.model = model.eval()
         self.obs_to_features = obs_to_features
         self.config = model.config
@@ -51,10 +51,8 @@ class ILPolicy:
         self.device = next(model.parameters()).device
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self.num_envs: int | None = None
-        self.is_diffusion = isinstance(model, DiffusionPolicy)
-        self.ensemble = (
-            self.is_diffusion is False and self.config.temporal_ensemble_coeff is not None
-        )
+        self.history_steps = self.config.observation_steps
+        self.ensemble = self.config.temporal_ensemble_coeff is not None
         self._keys = (*self.features.image_keys, *((STATE_KEY,) if self.features.state_dim else ()))
 
     def _allocate(self, n: int) -> None:
@@ -62,12 +60,12 @@ class ILPolicy:
         self.num_envs = n
         if self.ensemble:
             self.ensembler = TemporalEnsembler(
-                self.config.temporal_ensemble_coeff, self.config.chunk_size, n, a, self.device
+                self.config.temporal_ensemble_coeff, self.config.chunk_length, n, a, self.device
             )
         else:
             self.queue = ActionQueue(self.config.n_action_steps, n, a, self.device)
-        if self.is_diffusion:
-            self.history = {k: ObsHistory(self.config.n_obs_steps) for k in self._keys}
+        if self.history_steps is not None:
+            self.history = {k: ObsHistory(self.history_steps) for k in self._keys}
 
     def reset(self, env_mask: torch.Tensor | None = None) -> None:
         """Forget the per-env state of the envs in ``env_mask`` ((N,) bool; None: all)."""
@@ -79,7 +77,7 @@ class ILPolicy:
             self.ensembler.reset(env_mask)
         else:
             self.queue.reset(env_mask)
-        if self.is_diffusion:
+        if self.history_steps is not None:
             for h in self.history.values():
                 h.reset(env_mask)
 
@@ -93,7 +91,7 @@ class ILPolicy:
         out_device = feats[self._keys[0]].device
         n = feats[self._keys[0]].shape[0]
         out = {}
-        resized = getattr(self.config, "image_size", None) is not None
+        resized = self.config.image_size is not None
         for k, shape in zip(self.features.image_keys, self.features.image_shapes, strict=True):
             x = feats[k]
             ok = (
@@ -120,20 +118,16 @@ class ILPolicy:
         n = next(iter(feats.values())).shape[0]
         if self.num_envs != n:
             self._allocate(n)
-        if self.is_diffusion:
+        if self.history_steps is not None:
             feats = {k: self.history[k].push(v) for k, v in feats.items()}
         if self.ensemble:
-            action = self.ensembler.update(self.model.predict_chunk(feats))
+            action = self.ensembler.update(self.model.predict_chunk(feats, self.generator))
         else:
             need = self.queue.empty()
             if bool(need.any()):
                 idx = need.nonzero().squeeze(1)
                 sub = {k: v[idx] for k, v in feats.items()}
-                if self.is_diffusion:
-                    chunk = self.model.predict_chunk(sub, self.generator)
-                else:
-                    chunk = self.model.predict_chunk(sub)
-                self.queue.fill(idx, chunk)
+                self.queue.fill(idx, self.model.predict_chunk(sub, self.generator))
             action = self.queue.pop()
         return action.to(out_device)
 

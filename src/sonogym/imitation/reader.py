@@ -31,24 +31,73 @@ from sonogym.imitation import lerobot_format as fmt
 from sonogym.memory import available_memory
 
 BOOKKEEPING = tuple(fmt.DEFAULT_FEATURES)
+#: Largest magnitude a numeric feature value (action, state, ...) or statistic may have, in the
+#: feature's own units. No sonogym feature comes near it (actions are O(1) action units, states
+#: metres and radians) nor does a robot's joint angle in degrees or position in mm; a value
+#: beyond it, like NaN or inf, is a corrupt or mis-scaled frame that would train a policy to
+#: NaN weights, so the reader refuses it.
+MAX_ABS_VALUE = 1e6
 
 
 def load_stats(root: str | Path) -> dict[str, dict[str, torch.Tensor]]:
-    """``meta/stats.json`` as float32 tensors (images (C, 1, 1), vectors (D,), count (1,))."""
+    """``meta/stats.json`` as float32 tensors (images (C, 1, 1), vectors (D,), count (1,)).
+
+    Refused with ``DatasetFormatError`` naming the file, feature and statistic: a feature of
+    ``meta/info.json`` without statistics, statistics of another shape than the feature's (an
+    info.json of another robot or task), and a non-finite value or one beyond
+    ``MAX_ABS_VALUE``."""
     import json
 
-    fmt.read_info(root)  # version check
+    info = fmt.read_info(root)  # version check
     path = Path(root) / fmt.STATS_PATH
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: the dataset has no episodes yet?")
-    raw = json.loads(path.read_text())
-    return {
-        k: {
-            s: torch.tensor(np.asarray(v, dtype=np.float64), dtype=torch.float32)
-            for s, v in d.items()
+    try:
+        raw = json.loads(path.read_text())
+        out = {
+            k: {
+                s: torch.tensor(np.asarray(v, dtype=np.float64), dtype=torch.float32)
+                for s, v in d.items()
+            }
+            for k, d in raw.items()
         }
-        for k, d in raw.items()
-    }
+    except (ValueError, TypeError, AttributeError) as e:  # not JSON, or not {key: {stat: list}}
+        raise fmt.DatasetFormatError(
+            f"{path} is not a LeRobot stats file ({e}); restore it or re-record the dataset"
+        ) from None
+    for key, ft in info["features"].items():
+        if key in BOOKKEEPING:
+            continue
+        _check_stats(path, key, ft, out.get(key))
+    return out
+
+
+def _check_stats(path: Path, key: str, ft: dict[str, Any], stats: dict | None) -> None:
+    fix = "restore the dataset's meta folder or re-record it"
+    if stats is None:
+        raise fmt.DatasetFormatError(
+            f"{path} has no statistics of {key!r}, a feature of meta/info.json: the two files "
+            f"describe different features (another robot's or task's?); {fix}"
+        )
+    shape = ft["shape"]
+    want = (int(shape[2]), 1, 1) if fmt.is_image(ft) else (int(np.prod(shape)),)
+    for name in ("min", "max", "mean", "std"):
+        v = stats.get(name)
+        if v is None or tuple(v.shape) != want:
+            got = None if v is None else tuple(v.shape)
+            raise fmt.DatasetFormatError(
+                f"{path}: {key}/{name} has shape {got}, meta/info.json's {key} needs {want}: "
+                f"the two files describe different features; {fix}"
+            )
+    for name, v in stats.items():
+        if name == "count":
+            continue
+        bad = ~torch.isfinite(v) | (v.abs() > MAX_ABS_VALUE)
+        if bool(bad.any()):
+            raise fmt.DatasetFormatError(
+                f"{path}: {key}/{name} holds {v[bad].flatten()[0].item()} (values must be finite "
+                f"and within +-{MAX_ABS_VALUE:g}); {fix}"
+            )
 
 
 def read_episodes(root: str | Path, info: dict[str, Any] | None = None) -> list[dict[str, Any]]:
@@ -177,7 +226,15 @@ class LeRobotFrames(torch.utils.data.Dataset):
                     arr = col.to_numpy()
                 else:
                     arr = np.asarray(col.combine_chunks().flatten()).reshape(len(t), -1)
+                    if arr.shape[1] != int(np.prod(ft["shape"])):
+                        raise fmt.DatasetFormatError(
+                            f"{path}: column {k!r} holds {arr.shape[1]} values per frame, but "
+                            f"meta/info.json declares shape {ft['shape']}: info.json does not "
+                            "describe this data (edited, or another dataset's); restore it or "
+                            "re-record the dataset"
+                        )
                 parts[k].append(arr[keep])
+            self._check_values(path, {k: parts[k][-1] for k in numeric})
             file_of.append(np.full(int(keep.sum()), fi))
             row_of.append(np.flatnonzero(keep))
         if not self._files:
@@ -194,6 +251,26 @@ class LeRobotFrames(torch.utils.data.Dataset):
             self._numeric[k] = torch.from_numpy(np.ascontiguousarray(arr))
         self._file_of = np.concatenate(file_of)
         self._row_of = np.concatenate(row_of)
+
+    @staticmethod
+    def _check_values(path: Path, cols: dict[str, np.ndarray]) -> None:
+        """Refuse NaN, inf and values beyond ``MAX_ABS_VALUE`` in the float columns ``cols``
+        (one data file's committed rows), naming the file, episode, frame and column."""
+        for k, arr in cols.items():
+            if not np.issubdtype(arr.dtype, np.floating) or arr.size == 0:
+                continue  # (a file of an uncommitted episode keeps no rows)
+            bad = (~np.isfinite(arr) | (np.abs(arr) > MAX_ABS_VALUE)).reshape(len(arr), -1)
+            if not bad.any():
+                continue
+            row, j = (int(i[0]) for i in np.nonzero(bad))
+            value = arr.reshape(len(arr), -1)[row, j]
+            where = f"{k}[{j}]" if arr.ndim > 1 else k
+            raise fmt.DatasetFormatError(
+                f"{path}: episode {cols['episode_index'][row]}, frame "
+                f"{cols['frame_index'][row]}, column {where} is {value:.6g} (values must be finite "
+                f"and within +-{MAX_ABS_VALUE:g}): a corrupt or mis-scaled frame; fix or drop "
+                "that episode, or re-record the dataset"
+            )
 
     def _cache_budget(self, cache_mb: float | None) -> float:
         """Bytes the "bytes" cache may hold (see ``cache_mb``); warns when the data files do
@@ -236,13 +313,27 @@ class LeRobotFrames(torch.utils.data.Dataset):
         if self._decoded is not None:
             return self._decoded[key][idx]
         data = self._file_images(int(self._file_of[idx]))[key][int(self._row_of[idx])]
-        arr = fmt.decode_png(data)
+        try:
+            arr = fmt.decode_png(data)
+        except Exception as e:  # PIL raises several types for damaged bytes
+            raise fmt.DatasetFormatError(
+                f"{self._where(key, idx)}: the PNG does not decode ({type(e).__name__}: {e}); "
+                "the data file is damaged: restore it, or record the dataset again"
+            ) from None
         if list(arr.shape) != self.features[key]["shape"]:
             raise fmt.DatasetFormatError(
-                f"{key} frame {idx}: PNG of shape {arr.shape}, info.json says "
+                f"{self._where(key, idx)}: PNG of shape {arr.shape}, info.json says "
                 f"{self.features[key]['shape']}"
             )
         return torch.from_numpy(arr.transpose(2, 0, 1).copy())
+
+    def _where(self, key: str, idx: int) -> str:
+        """Where frame ``idx``'s ``key`` is stored, for error messages."""
+        return (
+            f"{self._files[int(self._file_of[idx])]} (row {int(self._row_of[idx])}): episode "
+            f"{int(self._numeric['episode_index'][idx])}, frame "
+            f"{int(self._numeric['frame_index'][idx])} (index {idx}), key {key!r}"
+        )
 
     def _decode_all(self, key: str) -> torch.Tensor:
         h, w, c = self.features[key]["shape"]

@@ -9,10 +9,11 @@ observation the expert acted on (the task's dataset features, images quantised t
 
 Safe writing: episodes land whole or not at all (``DatasetWriter``); ``meta/sonogym.json``
 (task, preset, env options, seed, envs, batches done, episodes written and failed) is written
-after each batch. ``resume`` continues an interrupted recording: it reruns the interrupted
-batch (batches are deterministic) and skips the episodes that batch had already written, so
-nothing is duplicated or missing; ``force`` replaces an existing dataset. The output-folder
-rule is ``sonogym.runs.prepare_output``'s.
+before the first batch and after each batch. ``resume`` continues an interrupted recording
+(interrupted in its first batch too): it reruns the interrupted batch (batches are
+deterministic) and skips the episodes that batch had already written, so nothing is duplicated
+or missing; ``force`` replaces an existing dataset. The output-folder rule (the folder's
+marker and lock) is ``sonogym.runs.prepare_output``'s.
 """
 
 from __future__ import annotations
@@ -31,9 +32,12 @@ from sonogym.envs.registry import get_task, make_vec
 from sonogym.envs.rollout import rollout
 from sonogym.envs.spec import DatasetSpec
 from sonogym.imitation.lerobot_format import encode_png
+from sonogym.imitation.processor import PolicyFeatures
 from sonogym.imitation.writer import DatasetWriter
+from sonogym.progress import progress_bar
 from sonogym.runs import (
     atomic_write_json,
+    deleted_message,
     lists_to_tuples,
     prepare_output,
     read_json,
@@ -77,6 +81,21 @@ def info_features(task: str, action_dim: int) -> dict[str, dict[str, Any]]:
     return out
 
 
+def check_task_features(task: str, features: PolicyFeatures, where: str) -> None:
+    """Refuse features (a dataset's, or those a run was trained on) that are not ``task``'s
+    dataset features: a policy trained on them cannot act in the task's env. ``where`` names
+    what says the task (a dataset folder, a run's config.json)."""
+    spec = get_task(task)  # an unknown task is named with the known ones
+    want = PolicyFeatures.from_info(info_features(task, len(spec.action_names)))
+    if features != want:
+        raise ValueError(
+            f"{where} names task {task!r}, but the features {features.to_dict()} are not "
+            f"{task}'s {want.to_dict()}: a policy trained on them cannot act in the {task} env. "
+            "Train on a dataset recorded for the task (sonogym record --task ...), or correct "
+            "the task named there"
+        )
+
+
 def quantize_images(x: torch.Tensor) -> torch.Tensor:
     """Float images in [0, 1] -> uint8 ``round(x * 255)``, the datasets' 8-bit storage."""
     return (x.clamp(0, 1) * 255).round().to(torch.uint8)
@@ -114,9 +133,7 @@ def record(
 
     ``preset``: one of the task's dataset presets (its env options and, unless ``episodes`` is
     given, its episode count); ``env_kwargs`` add to / override them."""
-    from tqdm import tqdm
-
-    spec = dataset_spec(task)
+    dataset_spec(task)  # refuses a task without datasets
     default_mode = get_task(task).default_obs_mode
     if (env_kwargs or {}).get("obs_mode", default_mode) != default_mode:
         # the dataset's features (spec.features) read the default observation
@@ -125,10 +142,24 @@ def record(
             f"obs_mode={env_kwargs['obs_mode']!r}; leave obs_mode out of the env options"
         )
     out = Path(out)
+    if resume and not (out / META).is_file():
+        raise FileNotFoundError(f"nothing to resume: {out} holds no sonogym recording")
+    if not resume:
+        envs = 16 if envs is None else envs
+        if envs < 1:
+            raise ValueError(f"envs must be a positive integer, got {envs}")
+        if episodes is not None and episodes < 1:
+            raise ValueError(f"episodes must be a positive integer, got {episodes}")
+    with prepare_output(out, resume=resume, force=force, kind="dataset") as folder:
+        if folder.deleted:
+            log(deleted_message(out, folder.deleted))
+        return _record(task, out, episodes, preset, envs, env_kwargs, seed, resume, progress, log)
+
+
+def _record(task, out, episodes, preset, envs, env_kwargs, seed, resume, progress, log):
+    spec = dataset_spec(task)
     t0 = time.perf_counter()
     if resume:
-        if not (out / META).is_file():
-            raise FileNotFoundError(f"nothing to resume: {out} holds no sonogym recording")
         meta = read_json(out / META, "sonogym recording", ("task", "env_kwargs", "envs", "seed"))
         given = {"task": task, "preset": preset, "envs": envs, "seed": seed,
                  "env_kwargs": env_kwargs or None}  # fmt: skip
@@ -142,15 +173,11 @@ def record(
         kw = lists_to_tuples(meta["env_kwargs"])
         envs, seed, preset = meta["envs"], meta["seed"], meta.get("preset")
     else:
-        envs = 16 if envs is None else envs
         seed = 0 if seed is None else seed
-        if envs < 1:
-            raise ValueError(f"envs must be a positive integer, got {envs}")
         kw = dict(spec.preset(preset).env_kwargs) if preset else {}
         kw.update(env_kwargs or {})
         if episodes is None:
             episodes = spec.preset(preset).episodes if preset else 100
-        prepare_output(out, resume=False, force=force, what="dataset", marker=META)
         meta = {"task": task, "preset": preset, "envs": envs, "seed": seed,
                 "env_kwargs": to_jsonable(kw), "episodes_wanted": episodes, "batches_done": 0,
                 "episodes_written": 0, "failed": 0}  # fmt: skip
@@ -161,6 +188,9 @@ def record(
 
     env = make_vec(task, envs, **kw)
     a_dim = env.single_action_space.shape[0]
+    # how it is recorded is on disk before the dataset's first file: a recording interrupted
+    # anywhere, in its first batch too, resumes
+    atomic_write_json(out / META, meta)
     writer = DatasetWriter(out, spec.fps, info_features(task, a_dim), spec.instruction,
                            spec.robot_type, resume=resume)  # fmt: skip
     done_eps = writer.num_episodes
@@ -176,8 +206,8 @@ def record(
         f"{per_ep / 2**20:.1f} MiB per episode, {per_ep * (episodes - done_eps) / 2**30:.2f} GiB "
         "to write"
     )
-    bar = tqdm(total=episodes, initial=done_eps, disable=not progress, unit="episode",
-               desc=f"record {task}")  # fmt: skip
+    bar = progress_bar(episodes, f"record {task}", initial=done_eps, unit="episode",
+                       enabled=progress)  # fmt: skip
     policy = ExpertPolicy(env, get_task(task).expert)
     fruitless = 0  # batches in a row that wrote nothing
     while writer.num_episodes < episodes:

@@ -1,4 +1,4 @@
-"""IL run folders: policy factory, atomic checkpoints, and loading a trained model back.
+"""IL run folders: atomic checkpoints, the run config, and loading a trained model back.
 
 A run folder (written by ``sonogym.imitation.train.train_il``)::
 
@@ -9,76 +9,31 @@ A run folder (written by ``sonogym.imitation.train.train_il``)::
     RUN/tb/                               TensorBoard scalars
 
 Every file is written to a temp name and renamed, so a killed run never leaves half a file.
+``IL_RUN`` is how ``sonogym.runs.RunFolder`` reads such a folder (checkpoints, config).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import re
-import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from sonogym.imitation import act, diffusion
+from sonogym.envs.registry import check_task_name
+from sonogym.imitation.policies.base import ILModel
+from sonogym.imitation.policies.registry import get_policy, policy_for_algo, policy_names
 from sonogym.imitation.processor import PolicyFeatures
 from sonogym.runs import (
     CheckpointError,
+    RunFolder,
+    RunKind,
     atomic_torch_save,
     atomic_write_json,
+    lists_to_tuples,
     load_weights,
     read_json,
 )
-
-POLICIES = ("act", "diffusion")
-RUN_KIND = "sonogym-il-run"
-_CKPT = re.compile(r"step_(\d+)\.pt$")
-
-
-def make_config(policy: str, preset: str = "cpu", **overrides):
-    """The ``paper`` or ``cpu`` preset config of ``policy`` ("act" or "diffusion")."""
-    cls = {"act": act.ACTConfig, "diffusion": diffusion.DiffusionConfig}.get(policy)
-    if cls is None:
-        raise ValueError(f"unknown policy {policy!r}; choose one of {POLICIES}")
-    if preset not in ("paper", "cpu"):
-        raise ValueError(f"unknown preset {preset!r}; choose 'paper' or 'cpu'")
-    return getattr(cls, preset)(**overrides)
-
-
-def policy_name(config) -> str:
-    if isinstance(config, act.ACTConfig):
-        return "act"
-    if isinstance(config, diffusion.DiffusionConfig):
-        return "diffusion"
-    raise TypeError(f"not an IL policy config: {type(config).__name__}")
-
-
-def make_policy(config, features: PolicyFeatures, stats) -> torch.nn.Module:
-    """ACTPolicy or DiffusionPolicy for ``config`` over ``features``, normalised by ``stats``."""
-    if isinstance(config, act.ACTConfig):
-        return act.ACTPolicy(config, features, stats)
-    if isinstance(config, diffusion.DiffusionConfig):
-        return diffusion.DiffusionPolicy(config, features, stats)
-    raise TypeError(f"not an IL policy config: {type(config).__name__}")
-
-
-def config_from_dict(policy: str, d: dict[str, Any]):
-    if policy == "act":
-        return act.config_from_dict(d)
-    if policy == "diffusion":
-        return diffusion.config_from_dict(d)
-    raise ValueError(f"unknown policy {policy!r} in a run config; known: {POLICIES}")
-
-
-def checkpoints(run: str | Path) -> list[tuple[int, Path]]:
-    """(step, path) of the run's checkpoints, oldest first."""
-    found = []
-    for p in (Path(run) / "checkpoints").glob("step_*.pt"):
-        m = _CKPT.search(p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    return sorted(found)
 
 
 def save_checkpoint(run: Path, step: int, state: dict[str, Any]) -> Path:
@@ -97,28 +52,14 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
     return state
 
 
-def newest_readable_checkpoint(
-    run: str | Path, device: str | torch.device = "cpu", warn=None
-) -> tuple[Path, dict[str, Any]] | None:
-    """(path, state) of the run's newest checkpoint that reads, or None; each unreadable newer
-    one (a save killed half-way, a corrupt file) is skipped with a warning naming it (``warn``:
-    a callable taking the message; default ``warnings.warn``)."""
-    for _, path in reversed(checkpoints(run)):
-        try:
-            return path, load_checkpoint(path, device)
-        except (CheckpointError, OSError) as e:
-            (warn or (lambda m: warnings.warn(m, stacklevel=3)))(
-                f"skipping unreadable checkpoint: {e}"
-            )
-    return None
+#: config.json's "kind" of an IL run
+RUN_KIND = "sonogym-il-run"
+#: keys every IL run's config.json has (what resume and evaluation read)
+RUN_CONFIG_KEYS = ("kind", "policy", "policy_config", "train", "features", "stats")
 
 
 def write_run_config(run: Path, cfg: dict[str, Any]) -> None:
     atomic_write_json(Path(run) / "config.json", {"kind": RUN_KIND, **cfg}, indent=4)
-
-
-#: keys every IL run's config.json has (what resume and evaluation read)
-RUN_CONFIG_KEYS = ("kind", "policy", "policy_config", "train", "features", "stats")
 
 
 def read_run_config(run: str | Path) -> dict[str, Any]:
@@ -131,7 +72,60 @@ def read_run_config(run: str | Path) -> dict[str, Any]:
     missing = [k for k in RUN_CONFIG_KEYS if k not in cfg]
     if missing:
         raise ValueError(f"{path} lacks {missing}: it was not written by `sonogym il-train`")
+    if cfg.get("task") is not None:  # None: a dataset sonogym did not record
+        check_task_name(cfg["task"], path)
     return cfg
+
+
+def read_evaluable_config(run: str | Path) -> dict[str, Any]:
+    """An IL run's config.json checked as evaluation reads it, before any env is built: its
+    task (known, and the one whose features the policy was trained on), algorithm, seed and
+    env options; a hand-edited or foreign one is named."""
+    from sonogym.envs.registry import env_config
+    from sonogym.imitation.record import check_task_features
+
+    run = Path(run)
+    path = run / "config.json"
+    cfg = read_run_config(run)  # its kind and keys
+    if not cfg.get("task"):
+        raise ValueError(
+            f"{run} was trained on a dataset not recorded by sonogym (no task known); "
+            "evaluate it with load_il_policy and your own env"
+        )
+    fix = "restore the config.json the run wrote, or retrain the run"
+    seed = cfg.get("seed", 0)
+    if (
+        policy_for_algo(cfg.get("algo")) is None
+        or isinstance(seed, bool)
+        or not isinstance(seed, int)
+    ):
+        algos = " or ".join(get_policy(name).algo for name in policy_names())
+        raise ValueError(
+            f"{path}: algo {cfg.get('algo')!r} ({algos}) or seed {seed!r} (an integer) is not "
+            f"an IL run's; {fix}"
+        )
+    env = lists_to_tuples(cfg.get("env_kwargs", {}))
+    try:
+        if not isinstance(env, dict):
+            raise ValueError(f"env_kwargs must be an object, got {env!r}")
+        env_config(cfg["task"], env)
+        features = PolicyFeatures.from_dict(cfg["features"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: {e}; {fix}") from None
+    check_task_features(cfg["task"], features, str(path))
+    return cfg
+
+
+IL_RUN = RunKind(
+    name="il",
+    command="sonogym il-train",
+    marker=RUN_KIND,
+    checkpoint_name=r"step_(\d+)\.pt",
+    checkpoint_hint="step_*.pt",
+    read_checkpoint=load_checkpoint,
+    read_config=read_evaluable_config,
+    env_kwargs_key=("env_kwargs",),
+)
 
 
 def load_model(
@@ -139,7 +133,7 @@ def load_model(
     device: str | torch.device = "cpu",
     checkpoint: str | Path | None = None,
     **config_overrides,
-) -> tuple[torch.nn.Module, dict[str, Any]]:
+) -> tuple[ILModel, dict[str, Any]]:
     """(model in eval mode, run config) from a run folder, newest checkpoint unless given.
 
     ``config_overrides`` change inference-only settings (``temporal_ensemble_coeff``,
@@ -147,7 +141,8 @@ def load_model(
     (the normalisation statistics come from config.json and the checkpoint).
     """
     cfg = read_run_config(run)
-    config = config_from_dict(cfg["policy"], cfg["policy_config"])
+    spec = get_policy(cfg["policy"])
+    config = spec.config_cls.from_dict(cfg["policy_config"])
     if config_overrides:
         config = dataclasses.replace(config, **config_overrides)
     features = PolicyFeatures.from_dict(cfg["features"])
@@ -155,12 +150,9 @@ def load_model(
         k: {s: torch.tensor(v, dtype=torch.float32) for s, v in d.items()}
         for k, d in cfg["stats"].items()
     }
-    model = make_policy(config, features, stats).to(device)
+    model = spec.model_cls(config, features, stats).to(device)
     if checkpoint is None:
-        found = newest_readable_checkpoint(run, device)
-        if found is None:
-            raise FileNotFoundError(f"no readable checkpoints/step_*.pt in {run}")
-        state = found[1]
+        state = RunFolder(run, IL_RUN).require_checkpoint(device).state
     else:
         state = load_checkpoint(checkpoint, device)
     model.load_state_dict(state["model"])

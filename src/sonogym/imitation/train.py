@@ -1,12 +1,14 @@
-"""Train ACT or Diffusion Policy on a LeRobotDataset v3.0 folder (``train_il``).
+"""Train a registered IL policy (ACT, Diffusion Policy, ...: ``policies.registry``) on a
+LeRobotDataset v3.0 folder (``train_il``).
 
 One input, ``ILTrainConfig``. The run folder layout and checkpoint format: ``run.py``.
 Samples: random frames of the dataset (with replacement across epochs, reshuffled each epoch)
-with the policy's observation history and action chunk (``delta_indices``); Diffusion Policy
-leaves the last ``horizon - n_action_steps - n_obs_steps + 1`` frames of each episode out as
-samples (LeRobot's sampler). Optimiser, learning-rate schedule, gradient clip and
-normalisation come from the policy config (LeRobot's choices: ACT AdamW at a constant rate,
-DP Adam with linear warm-up then cosine decay to 0 over ``steps``).
+with the policy's observation history and action chunk (``delta_indices``), leaving the
+policy's ``drop_n_last_frames`` of each episode out (Diffusion Policy: the last
+``horizon - n_action_steps - n_obs_steps + 1``, LeRobot's sampler). Optimiser, learning-rate
+schedule, gradient clip and normalisation come from the policy (LeRobot's choices: ACT AdamW
+at a constant rate, DP Adam with linear warm-up then cosine decay to 0 over ``steps``); the
+training step itself is the same for every policy.
 
 Determinism: one seed drives the model's initialisation, the sample order and the model's own
 noise (VAE sampling, diffusion noise, random crops). ``resume=True`` restores weights,
@@ -18,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,9 +29,11 @@ import torch
 
 from sonogym.imitation import run as runio
 from sonogym.imitation.lerobot_format import read_info
+from sonogym.imitation.policies.registry import get_policy, make_config, policy_names
 from sonogym.imitation.processor import PolicyFeatures, stats_subset
 from sonogym.imitation.reader import LeRobotFrames, load_stats
-from sonogym.runs import TrainingInterrupted, prepare_output
+from sonogym.progress import progress_bar
+from sonogym.runs import RunFolder, TrainingInterrupted, deleted_message, prepare_output
 
 
 @dataclass(frozen=True)
@@ -39,8 +42,9 @@ class ILTrainConfig:
 
     data: LeRobotDataset v3.0 folder.
     out: run folder (refused if it exists, unless ``resume`` or ``force``).
-    policy: "act" or "diffusion".
-    policy_config: an ``ACTConfig`` / ``DiffusionConfig``; None: the ``preset`` of ``policy``.
+    policy: a registered policy's name ("act", "diffusion", ...: ``policies.registry``).
+    policy_config: that policy's config (``ACTConfig``, ``DiffusionConfig``, ...); None: the
+        ``preset`` of ``policy``.
     preset: "cpu" or "paper" (used when ``policy_config`` is None).
     steps: optimiser steps in total, resumed ones included (>= 1).
     batch_size: samples per step (the reference: 8).
@@ -49,11 +53,15 @@ class ILTrainConfig:
     resume: continue from the newest checkpoint in ``out``.
     force: delete an existing run folder ``out`` first.
     save_every: steps between checkpoints (a final one is always written).
+    save_minutes: a checkpoint at least this often (minutes of training) between those, so a
+        killed run (SIGKILL, a lost machine) loses at most that much; each such checkpoint
+        replaces the previous such one of this call; 0: none.
     log_every: steps between TensorBoard scalars.
     num_workers: DataLoader worker processes (0: load in the training process).
     image_cache: the reader's image cache, "bytes" or "decoded" (see ``LeRobotFrames``).
     episodes: episode indices to train on (None: all).
-    progress: show a tqdm progress bar.
+    progress: show the progress (``sonogym.progress``: a bar on a terminal, a line every few
+        percent in a log).
     """
 
     data: str
@@ -68,6 +76,7 @@ class ILTrainConfig:
     resume: bool = False
     force: bool = False
     save_every: int = 5_000
+    save_minutes: float = 5.0
     log_every: int = 100
     num_workers: int = 0
     image_cache: str = "bytes"
@@ -75,19 +84,22 @@ class ILTrainConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        if self.policy not in runio.POLICIES:
-            raise ValueError(f"policy {self.policy!r} unknown; choose one of {runio.POLICIES}")
-        if self.policy_config is not None and runio.policy_name(self.policy_config) != self.policy:
+        if self.policy not in policy_names():
+            raise ValueError(f"policy {self.policy!r} unknown; choose one of {policy_names()}")
+        config_cls = get_policy(self.policy).config_cls
+        if self.policy_config is not None and not isinstance(self.policy_config, config_cls):
             raise ValueError(
                 f"policy {self.policy!r} with a {type(self.policy_config).__name__}: they differ"
             )
         if self.steps < 1 or self.batch_size < 1 or self.save_every < 1 or self.log_every < 1:
             raise ValueError("steps, batch_size, save_every and log_every must be >= 1")
+        if not self.save_minutes >= 0:
+            raise ValueError(f"save_minutes must be >= 0 (0: none), got {self.save_minutes}")
         if self.resume and self.force:
             raise ValueError("resume and force exclude each other")
 
     def resolved_policy_config(self):
-        return self.policy_config or runio.make_config(self.policy, self.preset)
+        return self.policy_config or make_config(self.policy, self.preset)
 
 
 @dataclass(frozen=True)
@@ -99,20 +111,6 @@ class ILTrainResult:
     history: tuple[tuple[int, float], ...]  # (step, mean loss of the interval) per log
 
 
-def _lr_lambda(policy: str, config, total: int):
-    if policy == "act":
-        return lambda step: 1.0
-    warm = config.lr_warmup_steps
-
-    def f(step: int) -> float:
-        if step < warm:
-            return (step + 1) / warm
-        progress = (step - warm) / max(1, total - warm)
-        return max(0.0, 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
-
-    return f
-
-
 def _recording(data: Path) -> dict:
     """How a sonogym-recorded dataset was recorded (``meta/sonogym.json``); {} for others."""
     from sonogym.imitation.record import META, read_recording
@@ -120,16 +118,14 @@ def _recording(data: Path) -> dict:
     return read_recording(data) if (data / META).is_file() else {}
 
 
-def _prepare_out(cfg: ILTrainConfig):
-    """The run folder, and on resume its config and newest readable checkpoint's state (read
-    before anything is written)."""
-    out = Path(cfg.out)
-    prepare_output(out, cfg.resume, cfg.force, what="`sonogym il-train` run", marker="config.json")
+def _resume_state(cfg: ILTrainConfig):
+    """On resume the run's config and newest readable checkpoint's state (read before anything
+    is written); (None, None) for a new run."""
     if not cfg.resume:
-        return out, None, None
-    old = runio.read_run_config(out)
-    found = runio.newest_readable_checkpoint(out, cfg.device)
-    return out, old, None if found is None else found[1]
+        return None, None
+    old = runio.read_run_config(cfg.out)
+    found = RunFolder(cfg.out, runio.IL_RUN).newest_readable_checkpoint(cfg.device)
+    return old, None if found is None else found.state
 
 
 def _resume_conflicts(old: dict, new: dict) -> list[str]:
@@ -153,35 +149,73 @@ def _resume_conflicts(old: dict, new: dict) -> list[str]:
 
 
 def train_il(cfg: ILTrainConfig) -> ILTrainResult:
-    """Train (or resume) an IL policy; see the module doc. Returns the run folder and totals."""
-    from torch.utils.tensorboard import SummaryWriter
-    from tqdm import tqdm
-
+    """Train (or resume) an IL policy; see the module doc. Returns the run folder and totals.
+    The run folder is locked while it trains (``sonogym.runs.prepare_output``)."""
     pcfg = cfg.resolved_policy_config()
-    out, old, state = _prepare_out(cfg)
+    # the dataset is read and checked (its statistics, the recorded task's features, every
+    # numeric value) before the run folder is touched
     data = Path(cfg.data).resolve()
     info = read_info(data)
     stats = load_stats(data)
     features = PolicyFeatures.from_info(info["features"])
+    recording = _recording(data)
+    if recording.get("task"):
+        from sonogym.imitation.record import check_task_features
+
+        check_task_features(recording["task"], features, f"{data} (meta/sonogym.json)")
+    ds = LeRobotFrames(
+        data,
+        delta_indices=pcfg.delta_indices(features),
+        episodes=None if cfg.episodes is None else list(cfg.episodes),
+        drop_n_last_frames=pcfg.drop_n_last_frames,
+        image_cache=cfg.image_cache,
+    )
+    if len(ds) == 0:
+        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
+    with prepare_output(cfg.out, cfg.resume, cfg.force, kind="il-run") as folder:
+        if folder.deleted:
+            print(deleted_message(cfg.out, folder.deleted))
+        return _train(cfg, pcfg, _Dataset(data, info, stats, features, recording, ds))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Dataset:
+    """The checked dataset a run trains on."""
+
+    root: Path
+    info: dict
+    stats: dict
+    features: PolicyFeatures
+    recording: dict
+    frames: LeRobotFrames
+
+
+def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
+    from torch.utils.tensorboard import SummaryWriter
+
+    data, info, stats = dataset.root, dataset.info, dataset.stats
+    features, recording, ds = dataset.features, dataset.recording, dataset.frames
+    out = Path(cfg.out)
+    old, state = _resume_state(cfg)
     dev = torch.device(cfg.device)
 
+    spec = get_policy(cfg.policy)
     torch.manual_seed(cfg.seed)
-    model = runio.make_policy(pcfg, features, stats).to(dev)
+    model = spec.model_cls(pcfg, features, stats).to(dev)
     model.train()
     opt = model.optimizer()
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(cfg.policy, pcfg, cfg.steps))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, model.lr_lambda(cfg.steps))
     gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     loader_gen = torch.Generator().manual_seed(cfg.seed + 2)
 
-    recording = _recording(data)
     run_cfg = {
         # what evaluation needs without the dataset: the task and the env it imaged
         "task": recording.get("task"),
-        "algo": "dp" if cfg.policy == "diffusion" else cfg.policy,
+        "algo": spec.algo,
         "seed": cfg.seed,
         "env_kwargs": recording.get("eval_env_kwargs", {}),
         "policy": cfg.policy,
-        "policy_config": dataclasses.asdict(pcfg),
+        "policy_config": pcfg.to_dict(),
         "train": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "policy_config"},
         "dataset": {
             "root": str(data),
@@ -219,15 +253,6 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
         start = int(state["step"])
     runio.write_run_config(out, run_cfg)
 
-    ds = LeRobotFrames(
-        data,
-        delta_indices=pcfg.delta_indices(features),
-        episodes=None if cfg.episodes is None else list(cfg.episodes),
-        drop_n_last_frames=pcfg.drop_n_last_frames,
-        image_cache=cfg.image_cache,
-    )
-    if len(ds) == 0:
-        raise ValueError(f"{data}: no training samples (episodes too short for the policy?)")
     loader = torch.utils.data.DataLoader(
         ds,
         batch_size=cfg.batch_size,
@@ -250,10 +275,15 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
     last_loss = float("nan")
     history: list[tuple[int, float]] = []
     t0 = time.perf_counter()
-    bar = tqdm(
-        total=cfg.steps, initial=start, disable=not cfg.progress, desc=f"il-train {cfg.policy}"
-    )
+    bar = progress_bar(cfg.steps, f"il-train {cfg.policy}", initial=start, unit="step",
+                       enabled=cfg.progress)  # fmt: skip
     step = start
+    resume_hint = (
+        f"sonogym il-train --policy {cfg.policy} --data {cfg.data} --out {out} --steps "
+        f"{cfg.steps} --resume"
+    )
+    saved_at = time.monotonic()
+    timed: Path | None = None  # the last checkpoint written for time, not on the step grid
 
     def save(step: int) -> Path:
         return runio.save_checkpoint(
@@ -270,7 +300,14 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
 
     try:
         while step < cfg.steps:
-            batch = {k: v.to(dev, non_blocking=True) for k, v in next(it).items()}
+            try:
+                raw = next(it)
+            except Exception:  # bad data (an undecodable frame): keep what was learnt
+                path = save(step)
+                print(f"stopped at step {step} of {cfg.steps} by the error below; saved {path}. "
+                      f"Fix the data, then resume with: {resume_hint}")  # fmt: skip
+                raise
+            batch = {k: v.to(dev, non_blocking=True) for k, v in raw.items()}
             loss, logs = model.compute_loss(batch, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -293,15 +330,18 @@ def train_il(cfg: ILTrainConfig) -> ILTrainResult:
                 sums, n_sum = {}, 0
             if step % cfg.save_every == 0 or step == cfg.steps:
                 save(step)
+                saved_at = time.monotonic()
+            elif cfg.save_minutes and time.monotonic() - saved_at >= 60 * cfg.save_minutes:
+                path = save(step)
+                if timed is not None:  # one time-based checkpoint is enough to resume from
+                    timed.unlink(missing_ok=True)
+                timed, saved_at = path, time.monotonic()
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         path = save(step)
-        msg = (
-            f"interrupted after {step} of {cfg.steps} steps; saved {path}. Resume with: sonogym "
-            f"il-train --policy {cfg.policy} --data {cfg.data} --out {out} --steps {cfg.steps} "
-            "--resume"
-        )
+        msg = f"interrupted after {step} of {cfg.steps} steps; saved {path}. Resume with: "
+        msg += resume_hint
         print(msg)
         raise TrainingInterrupted(msg) from None
     finally:

@@ -15,18 +15,20 @@ Safety:
   (orphan data rows and episode rows, temporary files) and continues with the next index: no
   duplicate or missing episode or frame index.
 * An existing dataset folder is refused unless ``resume=True`` (append) or ``force=True``
-  (delete and start over; refused for a non-empty folder that is not a dataset).
+  (delete and start over, by ``sonogym.runs.clear_output``: only a folder carrying sonogym's
+  dataset marker and holding nothing but ``meta/`` and ``data/``). A new dataset folder is
+  marked as one (``sonogym.runs.MARKER``).
 
-Files: a data file holds whole episodes (one parquet row group each) and grows until the next
-episode would take it past ``data_files_size_in_mb`` (LeRobot's default 100 MB); then a new file
-starts. Appending rewrites only the current file, so the cost per episode is bounded by that
-size, never by the dataset's. ``meta/episodes`` files hold up to 1000 episodes each.
+Files: every episode gets a data file of its own (``data/chunk-XXX/file-YYY.parquet``, 1000 per
+chunk folder, as LeRobot v3.0 allows), so appending never rewrites earlier data: a dataset
+needs no free disk space beyond its next episode, and a full disk costs at most that episode.
+Datasets whose data files hold several episodes (earlier sonogym, LeRobot) are read and
+appended to the same way. ``meta/episodes`` files hold up to 1000 episodes each.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -41,10 +43,15 @@ from sonogym.runs import (
     atomic_write,
     atomic_write_bytes,
     atomic_write_json,
+    clear_output,
+    output_entries,
+    read_marker,
     remove_stale_temporaries,
+    write_marker,
 )
 
 EPISODES_PER_META_FILE = 1000
+DATASET = "dataset"  # the output-folder kind (``sonogym.runs.KINDS``)
 
 
 def _to_numpy(x: Any) -> np.ndarray:
@@ -178,9 +185,6 @@ class DatasetWriter:
         resume: continue an existing dataset (its fps and features must match).
         force: delete an existing dataset folder first.
         chunks_size: files per chunk folder (LeRobot: 1000).
-        data_files_size_in_mb: a data file takes no more episodes once it would pass this size
-            (MiB, integer >= 0; LeRobot: 100). One episode larger than that gets a file of its
-            own; 0 puts every episode in its own file.
         png_compress_level: zlib level 0-9 of the PNG frames (1: fast, LeRobot's choice).
     """
 
@@ -195,31 +199,29 @@ class DatasetWriter:
         resume: bool = False,
         force: bool = False,
         chunks_size: int = fmt.DEFAULT_CHUNKS_SIZE,
-        data_files_size_in_mb: int = fmt.DEFAULT_DATA_FILES_SIZE_IN_MB,
         png_compress_level: int = 1,
     ) -> None:
         if resume and force:
             raise ValueError("resume=True and force=True exclude each other: append or replace")
-        if int(data_files_size_in_mb) != data_files_size_in_mb or data_files_size_in_mb < 0:
-            raise ValueError(
-                f"data_files_size_in_mb must be an integer >= 0, got {data_files_size_in_mb}"
-            )
         if not 0 <= png_compress_level <= 9:
             raise ValueError(f"png_compress_level must be in 0..9, got {png_compress_level}")
         self.root = Path(root)
         self.task = task
         self.png_compress_level = int(png_compress_level)
         self._broken: str | None = None
-        fresh = fmt.new_info(fps, features, robot_type, chunks_size, data_files_size_in_mb)
+        # info.json's file size limit is LeRobot's default, for LeRobot's writer appending
+        fresh = fmt.new_info(fps, features, robot_type, chunks_size)
         info_path = self.root / fmt.INFO_PATH
-        exists = self.root.exists() and any(self.root.iterdir())
-        if exists and not info_path.exists():
+        marked = (read_marker(self.root) or {}).get("kind") == DATASET
+        if output_entries(self.root) and not info_path.exists() and not marked:
             raise FileExistsError(
                 f"{self.root} exists, is not empty and holds no {fmt.INFO_PATH}: not a dataset "
                 "folder; refusing to write into it or delete it. Choose another folder."
             )
+        # a folder marked as a dataset without info.json has nothing committed: a new one
+        exists = info_path.exists()
         if exists and force:
-            shutil.rmtree(self.root)
+            clear_output(self.root, DATASET)
             exists = False
         if exists and not resume:
             n = fmt.read_info(self.root).get("total_episodes")
@@ -239,10 +241,11 @@ class DatasetWriter:
             self.tasks: list[str] = []
             self._meta_rows: list[dict[str, Any]] = []  # rows of the current episodes file
             self._meta_file_no = 0
-            self._data_file_no = 0
-            self._data_file_eps = 0  # episodes in the current data file
+            self._next_data_file = 0  # number of the next episode's data file
             self._agg = st.StatsAggregator()
             self.root.mkdir(parents=True, exist_ok=True)
+            if not marked:
+                write_marker(self.root, DATASET)
             atomic_write_json(self.root / fmt.INFO_PATH, self.info, indent=4)
 
     # --- public -----------------------------------------------------------------------------
@@ -358,22 +361,12 @@ class DatasetWriter:
     # --- commit steps (separate so tests can simulate a kill between them) -------------------
 
     def _write_data(self, table: pa.Table) -> tuple[int, int]:
-        """Put the episode's rows into the current data file (or a new one); its (chunk, file)."""
-        cs = self.info["chunks_size"]
-        limit = self.info["data_files_size_in_mb"] * 2**20
-        path = fmt.data_file(self.root, *fmt.chunk_file(self._data_file_no, cs))
-        old: list[pa.Table] = []
-        if self._data_file_eps > 0 and path.exists():
-            if path.stat().st_size + table.nbytes > limit:
-                self._data_file_no += 1
-                self._data_file_eps = 0
-                path = fmt.data_file(self.root, *fmt.chunk_file(self._data_file_no, cs))
-            else:
-                pf = pq.ParquetFile(path)
-                old = [pf.read_row_group(i) for i in range(pf.num_row_groups)]
-        _write_parquet(path, [*old, table], self._schema, self._image_cols)
-        self._data_file_eps += 1
-        return fmt.chunk_file(self._data_file_no, cs)
+        """Write the episode's rows to a new data file of its own; its (chunk, file)."""
+        chunk, file = fmt.chunk_file(self._next_data_file, self.info["chunks_size"])
+        _write_parquet(fmt.data_file(self.root, chunk, file), [table], self._schema,
+                       self._image_cols)  # fmt: skip
+        self._next_data_file += 1
+        return chunk, file
 
     def _commit_metadata(self, ep, length, task, new_tasks, stats, chunk, file) -> None:
         cs = self.info["chunks_size"]
@@ -490,13 +483,8 @@ class DatasetWriter:
         cs = info["chunks_size"]
         if rows:
             last = rows[-1]
-            self._data_file_no = last["data/chunk_index"] * cs + last["data/file_index"]
-            self._data_file_eps = sum(
-                1
-                for r in rows
-                if (r["data/chunk_index"], r["data/file_index"])
-                == (last["data/chunk_index"], last["data/file_index"])
-            )
+            # the next episode starts a new file, also after a file that holds several
+            self._next_data_file = last["data/chunk_index"] * cs + last["data/file_index"] + 1
             self._meta_file_no = (
                 last["meta/episodes/chunk_index"] * cs + last["meta/episodes/file_index"]
             )
@@ -508,5 +496,5 @@ class DatasetWriter:
             ]
             atomic_write_json(self.root / fmt.STATS_PATH, st.to_json(self._agg.result()), indent=4)
         else:
-            self._data_file_no = self._data_file_eps = self._meta_file_no = 0
+            self._next_data_file = self._meta_file_no = 0
             self._meta_rows = []

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from sonogym.progress import progress_bar
 from sonogym.ultrasound.learned.histogram import CT_WINDOW_HU, window_ct
 
 FORMAT = "sonogym-paired-ct-us"
@@ -214,8 +215,6 @@ def write_default_pairs(
     surface F1). Returns the manifest path. The held-out split is the last ``test_fraction`` of
     each phantom's pairs.
     """
-    from tqdm import tqdm
-
     from sonogym.anatomy.phantom import PhantomParams, load_phantom
     from sonogym.anatomy.surface import SkinSurface
     from sonogym.ultrasound.probe import ProbeGeometry
@@ -234,7 +233,7 @@ def write_default_pairs(
         fixed_model = random_physical_model(np.random.default_rng(model_seed))
     per_seed = [n // len(seeds) + (i < n % len(seeds)) for i in range(len(seeds))]
     entries: list[dict] = []
-    bar = tqdm(total=n, desc="lb-data", disable=not progress)
+    bar = progress_bar(n, "lb-data", unit="pair", enabled=progress)
     for seed, count in zip(seeds, per_seed, strict=True):
         if count == 0:
             continue

@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from sonogym.learned_training.data import PairedDataset, read_manifest
+from sonogym.progress import progress_bar
 from sonogym.ultrasound.learned.augment import random_down_up
 from sonogym.ultrasound.learned.checkpoint import save_generator
 from sonogym.ultrasound.learned.histogram import HistogramReference
@@ -90,8 +91,6 @@ def train_pix2pix(
     tensorboard: bool = True,
 ) -> dict:
     """Train one generator; returns the metrics also written to ``out/metrics.json``."""
-    from tqdm import tqdm
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device(device)
@@ -117,8 +116,8 @@ def train_pix2pix(
     history: list[dict] = []
     evals: list[dict] = []
     t0 = time.time()
-    bar = tqdm(range(steps), desc=f"lb-train seed {seed}", disable=not progress)
-    for step in bar:
+    bar = progress_bar(steps, f"lb-train seed {seed}", unit="step", enabled=progress)
+    for step in range(steps):
         idx = torch.randint(len(train), (min(batch_size, len(train)),), generator=g)
         ct = _resize(train.ct[idx], size).to(device)
         us = _resize(train.us[idx], size).to(device)
@@ -155,6 +154,8 @@ def train_pix2pix(
             if writer is not None and m["n"]:
                 for k in ("ssim", "psnr", "l1"):
                     writer.add_scalar(f"test/{k}", m[k], step + 1)
+        bar.update(1)
+    bar.close()
     final = {"step": steps, **evaluate(gen, hist, test, size)}
     evals.append(final)
     if writer is not None:

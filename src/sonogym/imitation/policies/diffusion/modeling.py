@@ -21,123 +21,17 @@ mean_std, state and action min_max (actions in [-1, 1], which the ±1 sample cli
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sonogym.imitation.processor import (
-    ACTION_KEY,
-    STATE_KEY,
-    Normalizer,
-    PolicyFeatures,
-    norm_modes,
-)
+from sonogym.imitation.policies.base import ILModel, Stats
+from sonogym.imitation.policies.diffusion.configuration import DiffusionConfig
+from sonogym.imitation.processor import ACTION_KEY, STATE_KEY, PolicyFeatures
 from sonogym.imitation.vision import ResNetEncoder, SpatialSoftmax, crop, resize
-
-
-@dataclass(frozen=True)
-class DiffusionConfig:
-    """Diffusion Policy hyperparameters. ``paper()``: LeRobot's defaults with SonoGym's
-    n_obs_steps 2 / horizon 16 / n_action_steps 8 and U-Net down dims 512/1024/2048; ``cpu()``:
-    a small model that trains on 2 CPU cores."""
-
-    n_obs_steps: int = 2  # observation steps conditioning a prediction (history length), >= 1
-    horizon: int = 16  # actions per predicted sequence (env steps), divisible by 2^(levels-1)
-    n_action_steps: int = 8  # actions executed per prediction, <= horizon - n_obs_steps + 1
-    # image encoder
-    image_size: tuple[int, int] | None = (
-        None  # (H, W) px images are resampled to; None: stored size
-    )
-    crop_shape: tuple[int, int] | None = None  # (H, W) px crop after resampling; None: no crop
-    crop_is_random: bool = True  # random crops in training (centre crops at inference)
-    backbone_widths: tuple[int, ...] = (64, 128, 256, 512)  # channels per ResNet stage
-    backbone_blocks: tuple[int, ...] = (2, 2, 2, 2)  # basic blocks per stage (ResNet-18: 2)
-    backbone_norm: str = "group"  # "group" (LeRobot's use_group_norm) or "batch"
-    num_keypoints: int = 32  # spatial-softmax keypoints per camera (feature = 2 K per camera)
-    # U-Net
-    down_dims: tuple[int, ...] = (512, 1024, 2048)  # channels per U-Net level
-    kernel_size: int = 5  # Conv1d kernel (odd)
-    n_groups: int = 8  # GroupNorm groups in the conv blocks (divides every down dim)
-    diffusion_step_embed_dim: int = 128  # width of the step embedding
-    use_film_scale_modulation: bool = True  # FiLM scale and bias (False: bias only)
-    # noise scheduler (diffusers)
-    num_train_timesteps: int = 100  # diffusion steps M
-    beta_schedule: str = "squaredcos_cap_v2"
-    beta_start: float = 1e-4
-    beta_end: float = 0.02
-    clip_sample: bool = True  # clip denoised samples to ±clip_sample_range
-    clip_sample_range: float = 1.0
-    scheduler: str = "ddpm"  # inference sampler: "ddpm" or "ddim"
-    num_inference_steps: int | None = (
-        None  # denoising steps at inference; None: num_train_timesteps
-    )
-    do_mask_loss_for_padding: bool = False  # leave padded actions out of the loss (LeRobot: off)
-    # optimisation (Adam, cosine schedule with linear warm-up)
-    lr: float = 1e-4  # peak learning rate (per step)
-    betas: tuple[float, float] = (0.95, 0.999)
-    eps: float = 1e-8
-    weight_decay: float = 1e-6
-    lr_warmup_steps: int = 500  # linear warm-up (optimiser steps)
-    grad_clip_norm: float = 10.0
-    # normalisation (processor)
-    visual_norm: str = "mean_std"
-    state_norm: str = "min_max"
-    action_norm: str = "min_max"
-
-    def __post_init__(self) -> None:
-        if self.n_obs_steps < 1 or self.horizon < 1:
-            raise ValueError("n_obs_steps and horizon must be >= 1")
-        if not 1 <= self.n_action_steps <= self.horizon - self.n_obs_steps + 1:
-            raise ValueError(
-                f"n_action_steps {self.n_action_steps} must lie in 1..horizon - n_obs_steps + 1 "
-                f"= {self.horizon - self.n_obs_steps + 1}"
-            )
-        down = 2 ** (len(self.down_dims) - 1)
-        if self.horizon % down:
-            raise ValueError(f"horizon {self.horizon} must be divisible by {down} (U-Net levels)")
-        if self.kernel_size % 2 == 0 or any(d % self.n_groups for d in self.down_dims):
-            raise ValueError("kernel_size must be odd and n_groups must divide every down dim")
-        if self.scheduler not in ("ddpm", "ddim"):
-            raise ValueError(f"scheduler {self.scheduler!r}: 'ddpm' or 'ddim'")
-        steps = self.num_inference_steps
-        if steps is not None and not 1 <= steps <= self.num_train_timesteps:
-            raise ValueError(f"num_inference_steps {steps} must lie in 1..num_train_timesteps")
-
-    @classmethod
-    def paper(cls, **kw) -> DiffusionConfig:
-        return cls(**kw)
-
-    @classmethod
-    def cpu(cls, **kw) -> DiffusionConfig:
-        """About 4 M parameters; DDIM with 10 inference steps."""
-        base = dict(
-            backbone_widths=(16, 32, 64, 128),
-            backbone_blocks=(1, 1, 1, 1),
-            num_keypoints=16,
-            down_dims=(64, 128, 256),
-            diffusion_step_embed_dim=64,
-            scheduler="ddim",
-            num_inference_steps=10,
-            lr_warmup_steps=100,
-        )
-        return cls(**{**base, **kw})
-
-    def delta_indices(self, features: PolicyFeatures) -> dict[str, list[int]]:
-        obs = list(range(1 - self.n_obs_steps, 1))
-        d = {k: obs for k in features.image_keys}
-        if features.state_dim:
-            d[STATE_KEY] = obs
-        d[ACTION_KEY] = list(range(1 - self.n_obs_steps, 1 - self.n_obs_steps + self.horizon))
-        return d
-
-    @property
-    def drop_n_last_frames(self) -> int:
-        """Frames at each episode's end not used as samples (LeRobot's DP sampler)."""
-        return max(0, self.horizon - self.n_action_steps - self.n_obs_steps + 1)
 
 
 def _sine_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -259,27 +153,16 @@ class _RgbEncoder(nn.Module):
         return F.relu(self.out(self.pool(self.trunk(x)).flatten(1)))
 
 
-class DiffusionPolicy(nn.Module):
+class DiffusionPolicy(ILModel):
     """Diffusion Policy over a dataset's features (see the module doc)."""
 
-    name = "diffusion"
+    config: DiffusionConfig
 
-    def __init__(
-        self,
-        config: DiffusionConfig,
-        features: PolicyFeatures,
-        stats: dict[str, dict[str, torch.Tensor]],
-    ) -> None:
-        super().__init__()
+    def __init__(self, config: DiffusionConfig, features: PolicyFeatures, stats: Stats) -> None:
+        super().__init__(config, features, stats)
         from diffusers import DDIMScheduler, DDPMScheduler
 
-        c = self.config = config
-        self.features = features
-        if not features.image_keys and not features.state_dim:
-            raise ValueError("Diffusion Policy needs image features or observation.state")
-        self.normalizer = Normalizer(
-            stats, norm_modes(features, c.visual_norm, c.state_norm, c.action_norm)
-        )
+        c = config
         feat = features.state_dim
         if features.image_keys:
             shapes = set(features.image_shapes)
@@ -312,12 +195,11 @@ class DiffusionPolicy(nn.Module):
             parts.append(f.reshape(b, n, -1))
         return torch.cat(parts, dim=-1).flatten(1)
 
-    def compute_loss(
-        self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None
+    def loss(
+        self, nb: dict[str, torch.Tensor], generator: torch.Generator | None
     ) -> tuple[torch.Tensor, dict[str, float]]:
-        """Noise-prediction MSE of a dataset batch (observations (B, n_obs_steps, ...), action
-        (B, horizon, A)). Returns (loss, {"mse": ..})."""
-        nb = self.normalizer(batch)
+        """Noise-prediction MSE of a normalised batch (observations (B, n_obs_steps, ...),
+        action (B, horizon, A)). Returns (loss, {"mse": ..})."""
         cond = self._global_cond(nb, generator)
         a = nb[ACTION_KEY]
         dev = a.device
@@ -328,21 +210,18 @@ class DiffusionPolicy(nn.Module):
         noisy = self.train_scheduler.add_noise(a, noise, steps)
         err = F.mse_loss(self.unet(noisy, steps, cond), noise, reduction="none")
         if self.config.do_mask_loss_for_padding:
-            err = err * ~batch[ACTION_KEY + "_is_pad"][..., None]
+            err = err * ~nb[ACTION_KEY + "_is_pad"][..., None]
         loss = err.mean()
         return loss, {"mse": float(loss.detach())}
 
-    @torch.no_grad()
-    def predict_chunk(
-        self, obs: dict[str, torch.Tensor], generator: torch.Generator | None = None
+    def predict(
+        self, obs: dict[str, torch.Tensor], generator: torch.Generator | None
     ) -> torch.Tensor:
-        """The n_action_steps actions (B, n_action_steps, A), dataset units, to execute from the
-        current step, for raw observation histories (B, n_obs_steps, ...) (oldest first)."""
+        """The n_action_steps normalised actions (B, n_action_steps, A) to execute from the
+        current step, denoised from ``generator``'s noise, for normalised observation
+        histories (B, n_obs_steps, ...) (oldest first)."""
         c = self.config
-        was = self.training
-        self.eval()
-        nb = self.normalizer(obs)
-        cond = self._global_cond(nb, None)
+        cond = self._global_cond(obs, None)
         b = cond.shape[0]
         x = torch.randn(
             b, c.horizon, self.features.action_dim, generator=generator, device=cond.device
@@ -352,9 +231,8 @@ class DiffusionPolicy(nn.Module):
             steps = torch.full((b,), int(t), device=cond.device, dtype=torch.long)
             eps = self.unet(x, steps, cond)
             x = self.sampler.step(eps, t, x, generator=generator).prev_sample
-        self.train(was)
         start = c.n_obs_steps - 1
-        return self.normalizer.unnormalize(ACTION_KEY, x[:, start : start + c.n_action_steps])
+        return x[:, start : start + c.n_action_steps]
 
     def optimizer(self) -> torch.optim.Optimizer:
         c = self.config
@@ -362,8 +240,15 @@ class DiffusionPolicy(nn.Module):
             self.parameters(), lr=c.lr, betas=c.betas, eps=c.eps, weight_decay=c.weight_decay
         )
 
+    def lr_lambda(self, total_steps: int) -> Callable[[int], float]:
+        """Linear warm-up over ``lr_warmup_steps``, then cosine decay to 0 at
+        ``total_steps``."""
+        warm = self.config.lr_warmup_steps
 
-def config_from_dict(d: dict) -> DiffusionConfig:
-    names = {f.name for f in dataclasses.fields(DiffusionConfig)}
-    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names}
-    return DiffusionConfig(**kw)
+        def f(step: int) -> float:
+            if step < warm:
+                return (step + 1) / warm
+            progress = (step - warm) / max(1, total_steps - warm)
+            return max(0.0, 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
+
+        return f

@@ -16,111 +16,24 @@ pretrained ResNet, we have none and use the dataset's).
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sonogym.imitation.processor import (
-    ACTION_KEY,
-    STATE_KEY,
-    Normalizer,
-    PolicyFeatures,
-    norm_modes,
-)
+from sonogym.imitation.policies.act.configuration import ACTConfig
+from sonogym.imitation.policies.base import ILModel, Stats
+from sonogym.imitation.processor import ACTION_KEY, STATE_KEY, PolicyFeatures
 from sonogym.imitation.vision import ResNetEncoder, resize, sine_position_1d, sine_position_2d
 
 
-@dataclass(frozen=True)
-class ACTConfig:
-    """ACT hyperparameters. ``paper()``: LeRobot's ACT defaults (what SonoGym trained with);
-    ``cpu()``: a small model that trains on 2 CPU cores in minutes."""
-
-    # chunking and inference
-    chunk_size: int = 100  # actions predicted per forward pass (env steps), >= 1
-    n_action_steps: int = 100  # actions executed per chunk without ensembling, 1..chunk_size
-    temporal_ensemble_coeff: float | None = 0.01  # w_i = exp(-coeff i), i = 0 oldest; None:
-    # execute n_action_steps of each chunk (the reference's play configs: None; paper: on)
-    # image encoder
-    image_size: tuple[int, int] | None = (
-        None  # (H, W) px the images are resampled to; None: as stored
+def _feed_forward(c: ACTConfig) -> nn.Sequential:
+    """A transformer block's feed-forward part: Linear, activation, dropout, Linear."""
+    return nn.Sequential(
+        nn.Linear(c.dim_model, c.dim_feedforward),
+        nn.ReLU() if c.feedforward_activation == "relu" else nn.GELU(),
+        nn.Dropout(c.dropout),
+        nn.Linear(c.dim_feedforward, c.dim_model),
     )
-    backbone_widths: tuple[int, ...] = (64, 128, 256, 512)  # channels per ResNet stage
-    backbone_blocks: tuple[int, ...] = (2, 2, 2, 2)  # basic blocks per stage (ResNet-18: 2)
-    backbone_norm: str = "group"  # "group" (GroupNorm, channels / 16 groups) or "batch"
-    # transformer
-    dim_model: int = 512  # token width, multiple of 4 and of n_heads
-    n_heads: int = 8  # attention heads
-    dim_feedforward: int = 3200  # hidden width of the feed-forward blocks
-    feedforward_activation: str = "relu"  # "relu" or "gelu"
-    n_encoder_layers: int = 4  # transformer encoder layers, >= 1
-    n_decoder_layers: int = 1  # decoder layers (LeRobot: 1; the original ACT used 1 of its 7)
-    pre_norm: bool = False  # LayerNorm before (True) or after (False) each block
-    dropout: float = 0.1  # dropout probability in the transformer, [0, 1)
-    # VAE
-    use_vae: bool = True  # train as a CVAE (False: plain L1 regression, z absent)
-    latent_dim: int = 32  # size of z
-    n_vae_encoder_layers: int = 4  # layers of the VAE's transformer encoder
-    kl_weight: float = 10.0  # weight of the KL term in the loss, >= 0
-    # optimisation (AdamW)
-    lr: float = 1e-5  # learning rate of everything but the image encoder (per step)
-    lr_backbone: float = 1e-5  # learning rate of the image encoder
-    weight_decay: float = 1e-4  # AdamW weight decay
-    grad_clip_norm: float = 10.0  # gradient-norm clip (LeRobot's default)
-    # normalisation (processor)
-    visual_norm: str = "mean_std"  # images: "mean_std", "min_max" or "identity"
-    state_norm: str = "mean_std"
-    action_norm: str = "mean_std"
-
-    def __post_init__(self) -> None:
-        if self.chunk_size < 1 or not 1 <= self.n_action_steps <= self.chunk_size:
-            raise ValueError(
-                f"need chunk_size >= 1 and 1 <= n_action_steps <= chunk_size, got "
-                f"{self.chunk_size}, {self.n_action_steps}"
-            )
-        if self.dim_model % 4 or self.dim_model % self.n_heads:
-            raise ValueError(f"dim_model {self.dim_model}: multiple of 4 and of n_heads")
-        if min(self.n_encoder_layers, self.n_decoder_layers, self.n_vae_encoder_layers) < 1:
-            raise ValueError("every transformer needs at least one layer")
-        if not 0 <= self.dropout < 1 or self.kl_weight < 0:
-            raise ValueError("dropout in [0, 1) and kl_weight >= 0 required")
-        if self.feedforward_activation not in ("relu", "gelu"):
-            raise ValueError(f"feedforward_activation {self.feedforward_activation!r}: relu|gelu")
-
-    @classmethod
-    def paper(cls, **kw) -> ACTConfig:
-        """LeRobot's ACT defaults (SonoGym's ACT runs), with temporal ensembling (paper)."""
-        return cls(**kw)
-
-    @classmethod
-    def cpu(cls, **kw) -> ACTConfig:
-        """About 1.3 M parameters: 4 small ResNet stages, a 128-wide transformer, chunk 20."""
-        base = dict(
-            chunk_size=20,
-            n_action_steps=20,
-            backbone_widths=(16, 32, 64, 128),
-            backbone_blocks=(1, 1, 1, 1),
-            dim_model=128,
-            n_heads=4,
-            dim_feedforward=512,
-            n_encoder_layers=2,
-            n_vae_encoder_layers=2,
-            latent_dim=16,
-            lr=1e-4,
-            lr_backbone=1e-4,
-        )
-        return cls(**{**base, **kw})
-
-    def delta_indices(self, features: PolicyFeatures) -> dict[str, list[int]]:
-        """Dataset offsets: the current observation, the next chunk_size actions."""
-        return {ACTION_KEY: list(range(self.chunk_size))}
-
-    @property
-    def drop_n_last_frames(self) -> int:
-        """ACT trains on every frame (``action_is_pad`` marks chunks past the episode end)."""
-        return 0
 
 
 class _EncoderLayer(nn.Module):
@@ -129,12 +42,7 @@ class _EncoderLayer(nn.Module):
     def __init__(self, c: ACTConfig) -> None:
         super().__init__()
         self.attn = nn.MultiheadAttention(c.dim_model, c.n_heads, c.dropout, batch_first=True)
-        self.ff = nn.Sequential(
-            nn.Linear(c.dim_model, c.dim_feedforward),
-            nn.ReLU() if c.feedforward_activation == "relu" else nn.GELU(),
-            nn.Dropout(c.dropout),
-            nn.Linear(c.dim_feedforward, c.dim_model),
-        )
+        self.ff = _feed_forward(c)
         self.n1, self.n2 = nn.LayerNorm(c.dim_model), nn.LayerNorm(c.dim_model)
         self.d1, self.d2 = nn.Dropout(c.dropout), nn.Dropout(c.dropout)
         self.pre_norm = c.pre_norm
@@ -155,12 +63,7 @@ class _DecoderLayer(nn.Module):
         super().__init__()
         self.self_attn = nn.MultiheadAttention(c.dim_model, c.n_heads, c.dropout, batch_first=True)
         self.cross_attn = nn.MultiheadAttention(c.dim_model, c.n_heads, c.dropout, batch_first=True)
-        self.ff = nn.Sequential(
-            nn.Linear(c.dim_model, c.dim_feedforward),
-            nn.ReLU() if c.feedforward_activation == "relu" else nn.GELU(),
-            nn.Dropout(c.dropout),
-            nn.Linear(c.dim_feedforward, c.dim_model),
-        )
+        self.ff = _feed_forward(c)
         self.norms = nn.ModuleList(nn.LayerNorm(c.dim_model) for _ in range(3))
         self.drops = nn.ModuleList(nn.Dropout(c.dropout) for _ in range(3))
         self.pre_norm = c.pre_norm
@@ -176,25 +79,14 @@ class _DecoderLayer(nn.Module):
         return block(2, x, self.ff)
 
 
-class ACTPolicy(nn.Module):
+class ACTPolicy(ILModel):
     """ACT over a dataset's features (see the module doc); holds its ``Normalizer``."""
 
-    name = "act"
+    config: ACTConfig
 
-    def __init__(
-        self,
-        config: ACTConfig,
-        features: PolicyFeatures,
-        stats: dict[str, dict[str, torch.Tensor]],
-    ) -> None:
-        super().__init__()
-        c = self.config = config
-        self.features = features
-        if not features.image_keys and not features.state_dim:
-            raise ValueError("ACT needs image features or observation.state as input")
-        self.normalizer = Normalizer(
-            stats, norm_modes(features, c.visual_norm, c.state_norm, c.action_norm)
-        )
+    def __init__(self, config: ACTConfig, features: PolicyFeatures, stats: Stats) -> None:
+        super().__init__(config, features, stats)
+        c = config
         d, a = c.dim_model, features.action_dim
         # VAE encoder
         if c.use_vae:
@@ -297,14 +189,13 @@ class ACTPolicy(nn.Module):
         actions = self.action_head(self.decoder_norm(y))
         return actions, (None if mu is None else (mu, log_var))
 
-    def compute_loss(
-        self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None
+    def loss(
+        self, nb: dict[str, torch.Tensor], generator: torch.Generator | None
     ) -> tuple[torch.Tensor, dict[str, float]]:
-        """Training loss of a dataset batch (raw values; ``action`` (B, k, A) with
+        """L1 + kl_weight KL of a normalised batch (``action`` (B, k, A) with
         ``action_is_pad`` (B, k)). Returns (loss, {"l1": .., "kl": ..})."""
-        nb = self.normalizer(batch)
         pred, post = self._forward(nb, generator)
-        pad = batch[ACTION_KEY + "_is_pad"]
+        pad = nb[ACTION_KEY + "_is_pad"]
         l1 = (F.l1_loss(pred, nb[ACTION_KEY], reduction="none") * ~pad[..., None]).mean()
         logs = {"l1": float(l1.detach())}
         if post is None:
@@ -314,15 +205,12 @@ class ACTPolicy(nn.Module):
         logs["kl"] = float(kl.detach())
         return l1 + self.config.kl_weight * kl, logs
 
-    @torch.no_grad()
-    def predict_chunk(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Actions (B, chunk_size, A) in dataset units for raw observations (images (B, C, H, W)
-        in [0, 1], state (B, D)); z = 0."""
-        was = self.training
-        self.eval()
-        pred, _ = self._forward(self.normalizer(obs))
-        self.train(was)
-        return self.normalizer.unnormalize(ACTION_KEY, pred)
+    def predict(
+        self, obs: dict[str, torch.Tensor], generator: torch.Generator | None
+    ) -> torch.Tensor:
+        """Normalised actions (B, chunk_size, A) for normalised observations (images
+        (B, C, H, W), state (B, D)); z = 0, so ``generator`` is not used."""
+        return self._forward(obs)[0]
 
     def optimizer(self) -> torch.optim.Optimizer:
         """AdamW with LeRobot's two parameter groups (image encoder at ``lr_backbone``)."""
@@ -332,9 +220,3 @@ class ACTPolicy(nn.Module):
         if bb:
             groups.append({"params": self.backbone_parameters(), "lr": self.config.lr_backbone})
         return torch.optim.AdamW(groups, lr=self.config.lr, weight_decay=self.config.weight_decay)
-
-
-def config_from_dict(d: dict) -> ACTConfig:
-    names = {f.name for f in dataclasses.fields(ACTConfig)}
-    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names}
-    return ACTConfig(**kw)

@@ -1,0 +1,200 @@
+"""Trained policies that ship with sonogym, evaluated exactly like a run of your own.
+
+Each lives in the package's ``pretrained/<name>/`` folder:
+
+* ``config.json``: the training run's own (``sonogym train`` wrote it), so the policy is rebuilt
+  as that run's would be;
+* ``policy.safetensors``: the acting weights of the chosen checkpoint (``safetensors``: tensors
+  only, nothing is unpickled);
+* ``model_card.json`` / ``model_card.md``: what it was trained on, for how long, at what CPU
+  cost, and how it scored.
+
+``sonogym eval --pretrained NAME --out DIR`` evaluates one (the same table, ``eval*.json`` and
+episode log as ``sonogym eval --run``, written to ``DIR``); ``--pretrained list`` lists them.
+``export_pretrained`` (``sonogym export``) makes one from a run folder.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from sonogym.runs import RunFolder, atomic_write_json, atomic_write_text, read_json
+
+#: Where shipped policies live (inside the installed package).
+PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
+WEIGHTS = "policy.safetensors"
+CARD = "model_card.json"
+
+
+def available(root: str | Path | None = None) -> list[str]:
+    """Names of the policies under ``root`` (default ``PRETRAINED_DIR``: folders holding a
+    config and weights)."""
+    root = Path(PRETRAINED_DIR if root is None else root)
+    if not root.is_dir():
+        return []
+    return sorted(
+        p.name for p in root.iterdir() if (p / "config.json").is_file() and (p / WEIGHTS).is_file()
+    )
+
+
+def pretrained_dir(name: str, root: str | Path | None = None) -> Path:
+    """The folder of shipped policy ``name``; an unknown name lists the known ones."""
+    known = available(root)
+    if name not in known:
+        raise ValueError(
+            f"no pretrained policy {name!r}; sonogym ships {known or 'none'} "
+            "(sonogym eval --pretrained list)"
+        )
+    return Path(PRETRAINED_DIR if root is None else root) / name
+
+
+def weights(name: str, root: str | Path | None = None) -> Path:
+    """The weights file of shipped policy ``name`` (the checkpoint evaluation loads)."""
+    return pretrained_dir(name, root) / WEIGHTS
+
+
+def read_card(name: str, root: str | Path | None = None) -> dict[str, Any]:
+    """The model card of shipped policy ``name`` ({} if it has none)."""
+    path = pretrained_dir(name, root) / CARD
+    return read_json(path, "pretrained policy") if path.is_file() else {}
+
+
+def listing(root: str | Path | None = None) -> str:
+    """One line per shipped policy: name, task, algorithm, observation and headline figures."""
+    lines = []
+    for name in available(root):
+        card = read_card(name, root)
+        head = card.get("headline", "")
+        lines.append(
+            f"{name}: {card.get('task', '?')} {card.get('algo', '?')}, observation "
+            f"{card.get('obs_mode') or 'default'}, {card.get('steps_total', '?')} env steps, "
+            f"{card.get('cpu_minutes', '?')} CPU min" + (f"; {head}" if head else "")
+        )
+    return "\n".join(lines) if lines else "no pretrained policies ship with this sonogym"
+
+
+def export_pretrained(
+    run: str | Path,
+    name: str,
+    root: str | Path | None = None,
+    checkpoint: str | Path | None = None,
+    notes: str = "",
+) -> Path:
+    """Write run ``run``'s policy as shipped policy ``name`` under ``root``: its config, the
+    acting weights of ``checkpoint`` (default: the newest readable) and a model card from the
+    run's config, its ``checkpoints/times.json`` and the evaluations in its folder
+    (``eval*.json``). Replaces an earlier export of the same name."""
+    import re
+
+    from sonogym.agents.checkpoint import RL_RUN, export_acting_weights, run_config
+    from sonogym.agents.train import read_times
+
+    if not re.fullmatch(r"[a-z0-9][a-z0-9_-]*", name):
+        raise ValueError(f"name {name!r}: use lower-case letters, digits, '_' and '-'")
+    run = Path(run)
+    cfg = run_config(run)
+    if checkpoint is None:
+        checkpoint = RunFolder(run, RL_RUN).require_checkpoint().path
+    checkpoint = Path(checkpoint)
+    step = RL_RUN.step_of(checkpoint)
+    dest = Path(PRETRAINED_DIR if root is None else root) / name
+    tmp = dest.with_name(f".{name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    export_acting_weights(checkpoint, tmp / WEIGHTS)
+    atomic_write_json(tmp / "config.json", cfg)
+    times = read_times(run / "checkpoints").get(step, {}) if step is not None else {}
+    card = _card(name, cfg, run, checkpoint, step, times, notes)
+    atomic_write_json(tmp / CARD, card)
+    atomic_write_text(tmp / "model_card.md", card_markdown(card))
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+    return dest
+
+
+def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[str, Any]:
+    tc = cfg["task_config"]
+    env = tc.get("env_kwargs", {})
+    evals = {}
+    for f in sorted(run.glob("eval*.json")):
+        table = json.loads(f.read_text())
+        results = table.get("results", {})
+        evals[table.get("protocol", f.stem)] = {
+            "trials": table.get("trials"),
+            "checkpoint": table.get("checkpoint"),
+            "test_env": table.get("env_overrides", {}),
+            "results": results,
+        }
+    steps = step if step is not None else cfg.get("steps")
+    return {
+        "name": name,
+        "task": cfg["task"],
+        "algo": cfg["algo"],
+        "seed": cfg["seed"],
+        "obs_mode": env.get("obs_mode"),
+        "net": tc.get("net"),
+        "preset": cfg.get("preset"),
+        "training_patients": env.get("patients", [0]),
+        "imaging_randomization": env.get("imaging_randomization", False),
+        "num_envs": tc.get("num_envs"),
+        "steps_per_env": steps,
+        "steps_total": None if steps is None else steps * int(tc.get("num_envs") or 1),
+        "cpu_minutes": round(times["cpu_s"] / 60, 1) if "cpu_s" in times else None,
+        "wall_minutes": round(times["wall_s"] / 60, 1) if "wall_s" in times else None,
+        "checkpoint": checkpoint.name,
+        "evaluations": evals,
+        "headline": _headline(cfg["task"], evals),
+        "notes": notes,
+        "versions": cfg.get("versions", {}),
+    }
+
+
+def _headline(task: str, evals: dict) -> str:
+    from sonogym.envs.registry import get_task
+
+    parts = []
+    metrics = get_task(task).metrics
+    for proto, e in evals.items():
+        pol = e["results"].get("policy", {})
+        vals = [f"{m.label} {pol[m.key][0]:.1f} {m.unit}" for m in metrics if m.key in pol]
+        if vals:
+            parts.append(f"{proto}: " + ", ".join(vals))
+    return "; ".join(parts)
+
+
+def card_markdown(card: dict[str, Any]) -> str:
+    """The model card as Markdown."""
+    lines = [
+        f"# Pretrained policy `{card['name']}`",
+        "",
+        f"- task: {card['task']}; algorithm: {card['algo']} (seed {card['seed']}); "
+        f"observation: {card.get('obs_mode') or 'the task default'}; network: {card.get('net')}",
+        f"- trained on patients {card['training_patients']}, imaging randomisation "
+        f"{'on' if card['imaging_randomization'] else 'off'}, {card.get('num_envs')} envs",
+        f"- {card.get('steps_per_env')} env steps per env ({card.get('steps_total')} in all), "
+        f"{card.get('cpu_minutes')} CPU minutes ({card.get('wall_minutes')} wall); checkpoint "
+        f"{card['checkpoint']}",
+        f"- evaluate: `sonogym eval --pretrained {card['name']} --out DIR` (add `--patients` "
+        "for your own subjects)",
+        "",
+        "## Evaluations",
+        "",
+    ]
+    for proto, e in card["evaluations"].items():
+        lines += [f"### {proto} ({e['trials']} episodes, checkpoint {e['checkpoint']})", ""]
+        if e.get("test_env"):
+            lines += [f"test env options: `{json.dumps(e['test_env'])}`", ""]
+        rows = e["results"]
+        keys = sorted({k for r in rows.values() for k in r})
+        lines.append("| controller | " + " | ".join(keys) + " |")
+        lines.append("|---" * (len(keys) + 1) + "|")
+        for c, r in rows.items():
+            vals = [f"{r[k][0]:.2f} ± {r[k][1]:.2f}" if k in r else "" for k in keys]
+            lines.append(f"| {c} | " + " | ".join(vals) + " |")
+        lines.append("")
+    if card.get("notes"):
+        lines += ["## Notes", "", card["notes"], ""]
+    return "\n".join(lines)

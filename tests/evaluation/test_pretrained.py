@@ -1,0 +1,97 @@
+"""Shipped policies: a run exported as a pretrained policy (config, safetensors weights, model
+card) acts exactly as the run's own checkpoint, and ``sonogym eval --pretrained`` evaluates it
+like a run, writing the same files to --out."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sonogym.cli import app
+from sonogym.evaluation import pretrained as P
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "nav"
+    args = ["train", "--task", "navigation", "--obs-mode", "us_heading", "--steps", "64",
+            "--envs", "4", "--phantom-spacing", "2", "--env-option", "episode_length=50",
+            "--checkpoint-every", "32", "--out", str(out)]  # fmt: skip
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_training_records_checkpoints_and_their_cpu_time(tiny_run):
+    from sonogym.agents.checkpoint import RL_RUN
+    from sonogym.agents.train import read_times
+    from sonogym.runs import RunFolder
+
+    steps = [t for t, _ in RunFolder(tiny_run, RL_RUN).checkpoints()]
+    assert sorted(steps) == [0, 32, 64]  # --checkpoint-every 32
+    times = read_times(tiny_run / "checkpoints")
+    assert sorted(times) == [32, 64]
+    assert 0 < times[32]["cpu_s"] <= times[64]["cpu_s"] and times[64]["wall_s"] > 0
+
+
+def test_exported_weights_act_as_the_checkpoint(tiny_run, tmp_path):
+    from sonogym.agents.checkpoint import RL_RUN, read_checkpoint
+    from sonogym.runs import RunFolder
+
+    ckpt = RunFolder(tiny_run, RL_RUN).require_checkpoint().path
+    dest = P.export_pretrained(tiny_run, "nav-test", root=tmp_path, notes="a test")
+    assert P.available(tmp_path) == ["nav-test"]
+    a, b = read_checkpoint(ckpt), read_checkpoint(dest / P.WEIGHTS)
+    assert set(b) == {"policy"}  # acting modules only: no value net, no optimiser
+    assert set(a["policy"]) == set(b["policy"])
+    assert all(torch.equal(a["policy"][k], b["policy"][k]) for k in a["policy"])
+    card = P.read_card("nav-test", tmp_path)
+    assert card["task"] == "navigation" and card["steps_per_env"] == 64
+    assert card["steps_total"] == 64 * 4 and card["cpu_minutes"] is not None
+    assert "a test" in (dest / "model_card.md").read_text()
+
+
+def test_eval_pretrained_writes_a_runs_table_to_out(tiny_run, tmp_path, monkeypatch):
+    P.export_pretrained(tiny_run, "nav-test", root=tmp_path / "shipped")
+    monkeypatch.setattr(P, "PRETRAINED_DIR", tmp_path / "shipped")
+    runner = CliRunner()
+    listed = runner.invoke(app, ["eval", "--pretrained", "list"])
+    assert listed.exit_code == 0 and listed.output.startswith("nav-test: navigation ppo")
+    out = tmp_path / "eval"
+    res = runner.invoke(app, ["eval", "--pretrained", "nav-test", "--trials", "2", "--envs", "2",
+                              "--out", str(out)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    table = json.loads((out / "eval.json").read_text())
+    assert table["checkpoint"] == P.WEIGHTS and set(table["results"]) >= {"policy", "expert"}
+    assert (out / "episodes" / "idt.npz").is_file()
+    # the same evaluation of the run's own checkpoint gives the same figures
+    same = runner.invoke(app, ["eval", "--run", str(tiny_run), "--trials", "2", "--envs", "2",
+                               "--out", str(tmp_path / "run-eval")])  # fmt: skip
+    assert same.exit_code == 0, same.output
+    ref = json.loads((tmp_path / "run-eval" / "eval.json").read_text())
+    assert ref["results"]["policy"] == table["results"]["policy"]
+    bad = runner.invoke(app, ["eval", "--pretrained", "nope"])
+    assert bad.exit_code != 0 and "ships ['nav-test']" in str(bad.output)
+
+
+def test_demo_runs_a_shipped_policy_beside_the_expert(tiny_run, tmp_path, monkeypatch):
+    from sonogym.envs.registry import make_vec
+    from sonogym.evaluation import demo
+
+    P.export_pretrained(tiny_run, "nav-test", root=tmp_path / "shipped")
+    monkeypatch.setattr(P, "PRETRAINED_DIR", tmp_path / "shipped")
+    small = {"phantom_spacing": 0.002, "episode_length": 20}
+    monkeypatch.setattr(demo, "make_vec", lambda t, n, **kw: make_vec(t, n, **{**small, **kw}))
+    results = demo.run_demo(tmp_path / "demo", num_envs=2, tasks=("navigation",), log=print)
+    assert set(results) == {"navigation", "navigation_pretrained-nav-test"}
+    shipped = results["navigation_pretrained-nav-test"]
+    assert shipped["controller"] == "pretrained nav-test"
+    assert "position_error_mm" in shipped["metrics"]
+    assert (tmp_path / "demo" / "navigation_pretrained-nav-test.mp4").stat().st_size > 0
+    assert (
+        "| navigation | pretrained nav-test | position_error_mm |"
+        in (tmp_path / "demo" / "metrics.md").read_text()
+    )

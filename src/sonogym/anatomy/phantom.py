@@ -104,7 +104,7 @@ class PhantomParams:
     back_curvature: float | None = None  # unitless, share of the lordotic curve the skin follows
     gluteal: float | None = None  # m, fat behind the sacrum rising from L3 (the buttocks' slope)
     trunk_roll: float | None = None  # rad, the patient rolled (trunk and spine) on the table
-    level_spread: float = 0.03  # unitless, std of the per-level size changes (drawn per level)
+    level_spread: float = 0.04  # unitless, std of the per-level size changes (drawn per level)
     disc_spread: float = 0.12  # unitless, std of the per-level disc height changes
     lamina_spread: float = 0.0025  # m, std of how far down each level's laminae reach
     spinous_spread: float = 0.0025  # m, std of the spinous tips' lateral deviation (per level)

@@ -116,6 +116,11 @@ _WAIST = 0.05  # body narrower at mid-height by this fraction
 _ENDPLATE_CONCAVITY = 1.0  # mm at the endplate centre
 _LAMINA_LEAN = 0.2  # a per s: the laminae's lower edges sit posterior of their upper edges
 _JOINT_GAP = 2.0  # mm, facet joint space
+# How far into the disc space below the laminae's lower edges reach (fraction of the disc
+# height): L5's stop at its body, so the L5-S1 interlaminar window is the lumbar spine's
+# widest, the one interlaminar access to the canal uses.
+_LAMINA_DISC_REACH = {"L5": 0.0}
+_LAMINA_DISC_REACH_DEFAULT = 0.2
 _FILLET = 2.0  # mm, blend between the parts of one bone
 
 
@@ -161,7 +166,8 @@ class Vertebra:
     @property
     def lamina_bottom(self) -> float:
         d = self.dims
-        return -d.body_half_height - 0.2 * d.disc_below - self.lamina_extension
+        reach = _LAMINA_DISC_REACH.get(self.level, _LAMINA_DISC_REACH_DEFAULT)
+        return -d.body_half_height - reach * d.disc_below - self.lamina_extension
 
     def lean(self, s):
         """Posterior shift (negative a) of the laminae at height s."""

@@ -79,13 +79,15 @@ def table_markdown(real: dict[str, float], bounds: dict, n: int) -> str:
         "| level | measure | real | phantoms | 5-95 % | inside |",
         "|---|---|---|---|---|---|",
     ]
+
+    def row(first: str, second: str, k: str) -> str:
+        lo, med, hi = bounds[k]
+        ok = "yes" if k not in outside(real, {k: bounds[k]}) else "**no**"
+        return f"| {first} | {second} | {real[k]:.1f} | {med:.1f} | {lo:.1f}-{hi:.1f} | {ok} |"
+
     for lv in M.LEVELS:
         for m in M.LEVEL_MEASURES:
-            k = f"{lv} {m}"
-            lo, med, hi = bounds[k]
-            ok = "yes" if k not in outside(real, {k: bounds[k]}) else "**no**"
-            lines.append(f"| {lv} | {_NAMES[m]} | {real[k]:.1f} | {med:.1f} | "
-                         f"{lo:.1f}-{hi:.1f} | {ok} |")  # fmt: skip
+            lines.append(row(lv, _NAMES[m], f"{lv} {m}"))
     lines += [
         "",
         "First-bone-hit depth (mm) at the L4 goal views, across the probe's width (lateral "
@@ -96,11 +98,7 @@ def table_markdown(real: dict[str, float], bounds: dict, n: int) -> str:
     ]
     for view in M.GOAL_VIEWS:
         for u in M.PROFILE_OFFSETS:
-            k = f"{view} {u:+.0f}"
-            lo, med, hi = bounds[k]
-            ok = "yes" if k not in outside(real, {k: bounds[k]}) else "**no**"
-            lines.append(f"| {view} | {u:+.0f} | {real[k]:.1f} | {med:.1f} | "
-                         f"{lo:.1f}-{hi:.1f} | {ok} |")  # fmt: skip
+            lines.append(row(view, f"{u:+.0f}", f"{view} {u:+.0f}"))
     return "\n".join(lines) + "\n"
 
 

@@ -45,6 +45,19 @@ def test_every_required_structure_is_present_with_its_id(small_phantom):
     assert present <= set(L.LABELS) | {0}
 
 
+@pytest.mark.parametrize("seed", [0, 3])  # thin, rolled trunks whose iliac crests reached the skin
+def test_every_bone_lies_under_the_skin_and_fat(seed, small_phantom):
+    p = small_phantom if seed == 0 else make_phantom(seed, PhantomParams(spacing=0.002))
+    lab = p.labels.numpy()
+    bone = np.isin(lab, sorted(L.BONE_IDS))
+    air = lab == 0
+    near_air = air.copy()  # within two voxels (4 mm: skin 2.5 mm + fat) of the air, cube
+    for axis in range(3):
+        for shift in (1, 2):
+            near_air |= np.roll(air, shift, axis) | np.roll(air, -shift, axis)
+    assert not (bone & near_air).any(), int((bone & near_air).sum())
+
+
 def test_left_and_right_are_the_patients(small_phantom):
     # RAS+: +x is the patient's right.
     for right, left in ((2, 3), (87, 86), (89, 88), (78, 77), (115, 103)):

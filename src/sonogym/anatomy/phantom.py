@@ -167,6 +167,7 @@ _HU = {
     "cord": 35.0,
 }
 _SKIN_MM = 2.5
+_MIN_COVER_MM = 2.0  # fat between the skin and a bone that reaches the back's surface
 _FASCIA_MM = 1.5  # thoracolumbar fascia over the paraspinal muscles
 _FURROW_SIGMA = 14.0  # mm, half-width scale of the midline furrow between the muscle bulges
 
@@ -249,6 +250,36 @@ class _Canvas:
             (bone + t_cortex) / self.h + 0.5
         ).clamp(0, 1)
         self.paint(sl, bone, label, hu)
+
+
+def _near(mask: torch.Tensor, reach: int) -> torch.Tensor:
+    """Voxels within ``reach`` voxels of ``mask`` along every axis (a cube around each)."""
+    x = mask[None, None].to(torch.float32)
+    for k in range(3):
+        size = [1, 1, 1]
+        size[k] = 2 * reach + 1
+        pad = [0, 0, 0]
+        pad[k] = reach
+        x = torch.nn.functional.max_pool3d(x, tuple(size), stride=1, padding=tuple(pad))
+    return x[0, 0] > 0
+
+
+def _cover_bone(cv) -> None:
+    """Bone drawn through the back's surface (an iliac crest on a thin, rolled trunk: the
+    pelvis turns with the spine, the skin does not) becomes skin and fat, so every bone lies
+    under the skin and ``_MIN_COVER_MM`` of fat as it does in a patient."""
+    air = cv.labels == 0
+    reach = math.ceil((_SKIN_MM + _MIN_COVER_MM) / cv.h)
+    bone = torch.isin(cv.labels, torch.tensor(sorted(L.BONE_IDS), dtype=cv.labels.dtype))
+    exposed = bone & _near(air, reach)
+    if not exposed.any():
+        return
+    skin = exposed & _near(air, math.ceil(_SKIN_MM / cv.h))
+    fat = exposed & ~skin
+    cv.labels[skin] = L.SKIN
+    cv.ct[skin] = _HU["skin"]
+    cv.labels[fat] = L.SUBCUTANEOUS_FAT
+    cv.ct[fat] = _HU["fat"]
 
 
 def _round_rect(u: torch.Tensor, v: torch.Tensor, hu: float, hv, r: float) -> torch.Tensor:
@@ -561,6 +592,8 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
             got = cv.union([S._capsule_part(seg[0], seg[1], r)])
             if got is not None:
                 cv.paint_bone(got[0], got[1], torch.full_like(got[1], 1e3), lab, p)
+
+    _cover_bone(cv)
 
     # --- CT noise, integer HU (so the int16 NIfTI round trip is exact)
     gen = torch.Generator().manual_seed(int(seed))

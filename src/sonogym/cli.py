@@ -168,6 +168,42 @@ def image(
 
 
 @app.command()
+def morphometry(
+    out: Annotated[
+        Path, typer.Option(help="Folder for population.json, morphometry.md and comparison.png.")
+    ] = Path("docs/results/morphometry"),
+    subject: Annotated[
+        Path,
+        typer.Option(help="Real TotalSegmentator subject folder (ct.nii.gz + segmentations/)."),
+    ] = Path("tests/data/totalsegmentator_example"),
+    seeds: Annotated[int, typer.Option(help="Phantoms in the population (seeds 0, 1, ...).")] = 40,
+    spacing: Annotated[float, typer.Option(help="Phantom voxel size in mm (0.5-2.0).")] = 2.0,
+    subject_spacing: Annotated[
+        float, typer.Option(help="Voxel size in mm the real subject is loaded at.")
+    ] = 1.0,
+    doc: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also rewrite the table between the morphometry marks of this "
+            "markdown file (e.g. docs/anatomy.md)."
+        ),
+    ] = None,
+) -> None:
+    """Measure a phantom population and a real subject the same way (spine morphometry, soft
+    tissue depths, bone-hit profiles at the L4 goal views) and write the comparison."""
+    from sonogym.viz.morphometry import write_report
+
+    _check_positive(("--seeds", seeds))
+    cmd = (f"sonogym morphometry --out {out} --subject {subject} --seeds {seeds} "
+           f"--spacing {spacing:g} --subject-spacing {subject_spacing:g}"
+           + (f" --doc {doc}" if doc else ""))  # fmt: skip
+    paths = write_report(out, subject, range(seeds), spacing * 1e-3, subject_spacing * 1e-3,
+                         doc=doc, command=cmd, log=typer.echo)  # fmt: skip
+    for path in paths.values():
+        typer.echo(f"wrote {path}")
+
+
+@app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Folder for frames, videos and metrics.")] = Path(
         "runs/demo"

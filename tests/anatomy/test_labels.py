@@ -43,6 +43,10 @@ def test_project_ids_start_at_118_and_body_is_120():
         "intervertebral_discs",
         "spinal_canal",
     }
+    # what the phantom draws and TotalSegmentator has no class for
+    assert L.LABEL_IDS["spinal_ligaments"] == L.SPINAL_LIGAMENTS == 123
+    assert L.LABEL_IDS["thoracolumbar_fascia"] == L.THORACOLUMBAR_FASCIA == 124
+    assert L.label_id("spinal_ligaments") == 123
 
 
 def test_label_id_accepts_names_levels_ids_and_rejects_unknown():

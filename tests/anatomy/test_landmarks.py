@@ -7,6 +7,8 @@ from scipy import ndimage
 
 from sonogym.anatomy import LandmarkError, Patient
 from sonogym.anatomy import labels as L
+from sonogym.anatomy.landmarks import MEDIAL_TOLERANCE
+from sonogym.anatomy.phantom_spine import LEVEL_DIMS
 
 LEVELS = ("L1", "L2", "L3", "L4", "L5")
 
@@ -32,7 +34,8 @@ def test_vertebra_frames_match_the_generator(small_phantom):
         truth = small_phantom.meta["vertebrae"][lv]
         rot = np.array(truth["rotation"])
         f = lm.vertebra(lv)
-        assert np.linalg.norm(f.centre - np.array(truth["centre_m"])) < 0.0015
+        # the drawn body's centroid within half a 2 mm voxel (0.2-0.5 mm on seeds 0-4)
+        assert np.linalg.norm(f.centre - np.array(truth["centre_m"])) < 0.001
         for k in range(3):
             assert (
                 math.degrees(math.acos(min(1.0, f.rotation[:, k] @ rot[:, k]))) < 4.0
@@ -41,16 +44,26 @@ def test_vertebra_frames_match_the_generator(small_phantom):
         assert np.linalg.det(f.rotation) > 0
 
 
-def test_trajectories_converge_medially_by_five_degrees_per_level(small_phantom):
+def test_trajectories_converge_medially_by_the_rule_or_toward_the_drawn_pedicle(small_phantom):
+    # The planner starts from 5 deg x level (Dickman) and may deviate within MEDIAL_TOLERANCE
+    # where that buys a wider corridor; on the phantom, whose pedicles are drawn at published
+    # per-level angles, a deviation can only lean toward the drawn angle (by at most one
+    # refinement step past it), and the recorded deviation is the one the trajectory has.
     lm = small_phantom.landmarks
     for lv in LEVELS:
         f = lm.vertebra(lv)
+        nominal = 5.0 * int(lv[1])
+        drawn = LEVEL_DIMS[lv].pedicle_angle
         for side, sgn in (("left", -1), ("right", 1)):
             t = lm.trajectory(lv, side)
             angle = math.degrees(
                 math.atan2(-sgn * t.direction @ f.lateral, t.direction @ f.anterior)
             )
-            assert abs(angle - 5 * int(lv[1])) < 0.5
+            assert angle == pytest.approx(nominal + t.medial_deviation, abs=1e-6), (lv, side)
+            assert MEDIAL_TOLERANCE[0] <= t.medial_deviation <= MEDIAL_TOLERANCE[1]
+            step = 1.25  # deg, the planner's finest angle step
+            lo, hi = sorted((nominal, drawn + math.copysign(step, drawn - nominal)))
+            assert lo - 1e-6 <= angle <= hi + 1e-6, (lv, side, angle, drawn)
             assert abs(t.direction @ f.superior) < 1e-6  # parallel to the endplate
             # entry lateral of the target, on its own side
             assert sgn * (t.entry - f.centre) @ f.lateral > sgn * (t.target - f.centre) @ f.lateral

@@ -32,6 +32,7 @@ def test_every_required_structure_is_present_with_its_id(small_phantom):
     present = set(torch.unique(small_phantom.labels).tolist())
     required = {
         L.SKIN, L.SUBCUTANEOUS_FAT, L.BODY_TRUNC, L.INTERVERTEBRAL_DISCS, L.SPINAL_CANAL,
+        L.SPINAL_LIGAMENTS, L.THORACOLUMBAR_FASCIA,
         86, 87, 88, 89,  # autochthon, iliopsoas
         31, 30, 29, 28, 27,  # L1-L5
         32, 26, 25,  # T12, S1, sacrum
@@ -42,6 +43,19 @@ def test_every_required_structure_is_present_with_its_id(small_phantom):
     }  # fmt: skip
     assert required <= present, sorted(required - present)
     assert present <= set(L.LABELS) | {0}
+
+
+@pytest.mark.parametrize("seed", [0, 3])  # thin, rolled trunks whose iliac crests reached the skin
+def test_every_bone_lies_under_the_skin_and_fat(seed, small_phantom):
+    p = small_phantom if seed == 0 else make_phantom(seed, PhantomParams(spacing=0.002))
+    lab = p.labels.numpy()
+    bone = np.isin(lab, sorted(L.BONE_IDS))
+    air = lab == 0
+    near_air = air.copy()  # within two voxels (4 mm: skin 2.5 mm + fat) of the air, cube
+    for axis in range(3):
+        for shift in (1, 2):
+            near_air |= np.roll(air, shift, axis) | np.roll(air, -shift, axis)
+    assert not (bone & near_air).any(), int((bone & near_air).sum())
 
 
 def test_left_and_right_are_the_patients(small_phantom):
@@ -99,10 +113,15 @@ def test_posterior_soft_tissue_over_the_laminae(small_phantom):
 
 
 def test_fat_thickness_follows_its_parameter():
+    # The fat thickens toward the flanks (fat_lateral), over the buttocks (gluteal, from L3
+    # down) and where it fills the midline furrow: fat_thickness is the layer beside the spine
+    # above L3, where those terms vanish.
     for fat in (0.008, 0.025):
-        p = make_phantom(2, PhantomParams(spacing=0.002, fat_thickness=fat))
-        z = p.landmarks.vertebra("L4").centre[2]
-        i, k = np.rint(p.world_to_voxel_np([0.06, 0, z])[[0, 2]]).astype(int)
+        p = make_phantom(2, PhantomParams(spacing=0.002, fat_thickness=fat, gluteal=0.0,
+                                          fat_lateral=0.0, midline_furrow=1.0))  # fmt: skip
+        f = p.landmarks.vertebra("L2")
+        i, k = np.rint(p.world_to_voxel_np(f.centre + [0.025, 0, 0])[[0, 2]]).astype(int)
+        z = f.centre[2]
         back = p.origin[1] + torch.arange(p.shape[1]) * p.spacing[1] < z * 0  # y < 0: the back
         n_fat = int(((p.labels[i, :, k] == L.SUBCUTANEOUS_FAT) & back).sum())
         assert abs(n_fat * 0.002 - fat) <= 0.004

@@ -34,6 +34,7 @@ def test_sonogym_uses_the_intended_mapping_without_the_chain_bug():
     assert all(m[i] == 13 for i in range(25, 51))  # vertebrae
     assert m[79] == 10 and m[86] == 8 and m[52] == 15 and m[91] == 14 and m[90] == 9
     assert m[118] == m[119] == m[120] == m[121] == 12 and m[122] == 10
+    assert m[123] == m[124] == 12  # ligaments, fascia: no ligament tissue in the reference
     assert m[0] == 0
 
 
@@ -60,6 +61,15 @@ def test_physical_reflection_coefficients_match_the_literature():
     assert _r("soft_tissue", "air") < -0.999
     assert PHYSICAL_TISSUES["bone"].alpha >= 5  # dB/cm/MHz: casts a shadow
     assert 0.5 <= PHYSICAL_TISSUES["soft_tissue"].alpha <= 0.7
+
+
+def test_ligaments_and_fascia_image_as_echogenic_dense_tissue():
+    phys = physical_table()
+    assert phys.tissue_of(123) == phys.tissue_of(124) == "ligament"
+    lig, muscle, fat = (PHYSICAL_TISSUES[k] for k in ("ligament", "muscle", "fat"))
+    assert lig.mu0 > muscle.mu0 and lig.mu0 > fat.mu0  # brighter speckle than its neighbours
+    assert _r("fat", "ligament") > _r("fat", "muscle") > 0  # a brighter interface under fat
+    assert lig.alpha > muscle.alpha
 
 
 def test_table_columns_are_label_indexed():

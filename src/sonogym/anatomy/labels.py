@@ -16,6 +16,8 @@ exists (``body_trunc`` from the ``body`` task, ``subcutaneous_fat`` from ``tissu
 | 120 | body_trunc            | any other soft tissue of the trunk (reference's 120)    |
 | 121 | intervertebral_discs  | annulus + nucleus                                       |
 | 122 | spinal_canal          | CSF / cauda equina inside the vertebral canal           |
+| 123 | spinal_ligaments      | supra- and interspinous ligaments, ligamentum flavum    |
+| 124 | thoracolumbar_fascia  | fascia over the paraspinal (autochthon) muscles         |
 """
 
 from __future__ import annotations
@@ -114,6 +116,8 @@ PROJECT_LABELS: dict[int, str] = {
     120: "body_trunc",
     121: "intervertebral_discs",
     122: "spinal_canal",
+    123: "spinal_ligaments",
+    124: "thoracolumbar_fascia",
 }
 
 #: Every id the patient model uses -> name (background 0 excluded).
@@ -126,6 +130,8 @@ SUBCUTANEOUS_FAT = 119
 BODY_TRUNC = 120
 INTERVERTEBRAL_DISCS = 121
 SPINAL_CANAL = 122
+SPINAL_LIGAMENTS = 123
+THORACOLUMBAR_FASCIA = 124
 
 #: Lumbar vertebrae, cranial to caudal, with their TotalSegmentator v2 ids.
 LUMBAR_VERTEBRAE: dict[str, int] = {"L1": 31, "L2": 30, "L3": 29, "L4": 28, "L5": 27}
@@ -142,7 +148,8 @@ def label_id(name_or_id: str | int) -> int:
     if isinstance(name_or_id, int):
         if name_or_id not in LABELS:
             raise KeyError(
-                f"unknown label id {name_or_id}; ids are 1-122 (see sonogym.anatomy.labels)"
+                f"unknown label id {name_or_id}; ids are 1-{max(LABELS)} "
+                "(see sonogym.anatomy.labels)"
             )
         return name_or_id
     if name_or_id in LABEL_IDS:

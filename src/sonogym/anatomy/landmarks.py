@@ -3,11 +3,12 @@
 One code path for phantoms and real TotalSegmentator data, ground-truth masks or model output,
 at 0.5-3 mm. Rules (ultrasound_physics.md §4-5):
 
-* Vertebra frame: origin at the vertebral-body centroid (the vertebra's voxels more than 2 mm in
-  front of the canal, within 30 mm of it laterally); s (superior) along the spine: first from
-  the neighbouring vertebrae's centroids, then from the curve through the body centroids (a
-  central difference between the neighbours' bodies, at an end of the spine in view the tangent
-  of the quadratic through three bodies), which a rough or damaged posterior arch does not move;
+* Vertebra frame: origin at the vertebral-body centroid (the vertebra's voxels in front of the
+  canal's anterior border, within 30 mm of it laterally, cut in the vertebra's own axially
+  rotated frame); s (superior) along the spine: first from the neighbouring vertebrae's
+  centroids, then from the curve through the body centroids (a central difference between the
+  neighbours' bodies, at an end of the spine in view the tangent of the quadratic through three
+  bodies), which a rough or damaged posterior arch does not move;
   a (anterior) from the spinal-canal centre toward the body centroid (so axial rotation is
   captured); l = a x s (toward the patient's right).
 * Spinal canal, in the axial projection of a +-10 mm slab (then +-5 mm) around the vertebra's
@@ -450,22 +451,29 @@ def _vertebra_frame(level, pts, centroid, s_ax, h, label_pts) -> VertebraFrame:
             "canal"
         )
     cc, hw, hd = canal
-    # Body: voxels anterior of the canal, within 30 mm of the midline.
-    q = _project(pts, cc, np.stack([l0, a0, s_ax], 1))
-    body = pts[(q[:, 1] > hd + 0.002) & (np.abs(q[:, 0]) < 0.03)]
-    if len(body) < 10:
-        raise LandmarkError(
-            f"vertebra {level}: its mask has no vertebral body in front of the canal"
-        )
-    body_c = body.mean(0)
-    a_ax = body_c - cc
-    a_ax -= (a_ax @ s_ax) * s_ax
-    a_ax /= np.linalg.norm(a_ax)
-    l_ax = np.cross(a_ax, s_ax)
-    # Re-measure the canal in the refined frame.
-    canal = _canal(pts, centroid, l_ax, a_ax, s_ax, h, label_pts)
-    if canal is not None:
-        cc, hw, hd = canal
+    rot = np.stack([l0, a0, s_ax], 1)
+    # Body: voxels in front of the canal's anterior border (the body's posterior wall), within
+    # 30 mm of the midline; a cut further forward drops the body's back and moves its centroid
+    # forward. Two passes: the first cuts across the frame without axial rotation, which on a
+    # rotated vertebra takes more of one side's posterior corner than the other's (moving the
+    # centroid sideways); the second cuts in the frame the first found.
+    for _ in range(2):
+        q = _project(pts, cc, rot)
+        body = pts[(q[:, 1] > hd) & (np.abs(q[:, 0]) < 0.03)]
+        if len(body) < 10:
+            raise LandmarkError(
+                f"vertebra {level}: its mask has no vertebral body in front of the canal"
+            )
+        body_c = body.mean(0)
+        a_ax = body_c - cc
+        a_ax -= (a_ax @ s_ax) * s_ax
+        a_ax /= np.linalg.norm(a_ax)
+        l_ax = np.cross(a_ax, s_ax)
+        rot = np.stack([l_ax, a_ax, s_ax], 1)
+        # Re-measure the canal in the refined frame.
+        canal = _canal(pts, centroid, l_ax, a_ax, s_ax, h, label_pts)
+        if canal is not None:
+            cc, hw, hd = canal
     rot = np.stack([l_ax, a_ax, s_ax], 1)
     return VertebraFrame(level, body_c, rot, cc, float(hw), float(hd))
 

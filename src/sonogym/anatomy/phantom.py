@@ -1,15 +1,20 @@
-"""Procedural lumbar phantom: a prone adult torso with L1-L5, drawn from signed distances.
+"""Procedural lumbar phantom: a prone adult torso with T12-S1, sacrum and pelvis, drawn from
+signed distances.
 
 ``make_phantom(seed, params)`` returns a :class:`~sonogym.anatomy.patient.Patient` whose label
 map uses TotalSegmentator v2 ids (plus project ids >= 118) and whose CT is in Hounsfield units
-with partial-volume edges and CT noise. Anatomy is drawn in millimetres from analytic shapes:
-each vertebra (body with cortical shell over a cancellous core, pedicles, laminae, spinous,
-transverse and articular processes) is built in its own frame (l lateral toward the patient's
-right, a anterior, s superior) and placed along a spine curve with lordosis, scoliosis and axial
-rotation. Dimensions follow shared/reference/ultrasound_physics.md §4 (adult ranges).
+with partial-volume edges and CT noise. Bones come from ``phantom_spine`` (each vertebra built
+from a kidney-shaped body, pedicles, a continuous arch of laminae and spinous process, facet
+joints and transverse processes; sacrum with its median crest; iliac crests beside L4-L5). Over
+them lie the paraspinal muscles (autochthon) under the thoracolumbar fascia, the supra- and
+interspinous ligaments in the midline, the ligamentum flavum behind the canal, subcutaneous fat
+thicker on the flanks and over the midline furrow, and skin. Dimensions and their spread follow
+published adult morphometry (docs/anatomy.md, ultrasound_physics.md §4).
 
 Variability comes from named parameters (``PhantomParams``); any left ``None`` is drawn from the
-seed. The same seed and params give the same volumes bit for bit.
+seed, and per-level size changes and spinous-tip deviations are drawn from the seed as well
+(their spread is ``level_spread`` and ``spinous_spread``). The same seed and params give the
+same volumes bit for bit.
 
 ``load_phantom`` adds an on-disk cache (``$SONOGYM_CACHE``, default ``~/.cache/sonogym``).
 """
@@ -28,35 +33,47 @@ import numpy as np
 import torch
 
 from sonogym.anatomy import labels as L
+from sonogym.anatomy import phantom_spine as S
 from sonogym.anatomy.cache import cached_patient
 from sonogym.anatomy.patient import Patient
 from sonogym.anatomy.sdf import (
     capsule,
     ellipse2,
     ellipsoid,
-    extrude,
-    segment2,
     smooth_union,
     superellipse2,
 )
 
 #: Bump when the generator's output changes, so stale cache entries are not reused.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 # ----------------------------------------------------------------------------- parameters
 
 #: Drawn parameters: name -> (low, high). Drawn in this order from the seed, each always drawn
 #: (even when given) so fixing one parameter leaves the others' draws unchanged.
 _SAMPLED: dict[str, tuple[float, float]] = {
-    "torso_half_width": (0.150, 0.185),  # m
-    "torso_depth": (0.200, 0.250),  # m
-    "fat_thickness": (0.006, 0.030),  # m
+    "torso_half_width": (0.145, 0.190),  # m
+    "torso_depth": (0.200, 0.270),  # m
+    "fat_thickness": (0.003, 0.022),  # m
     "muscle_bulk": (0.85, 1.20),  # scale
-    "vertebra_scale": (0.92, 1.08),  # scale
+    "vertebra_scale": (0.92, 1.14),  # scale
     "lordosis": (0.45, 0.85),  # rad, L1 vs S1 endplates (prone)
     "scoliosis": (-0.006, 0.006),  # m, peak lateral offset
-    "axial_rotation": (-0.07, 0.07),  # rad, peak axial rotation
+    "axial_rotation": (-0.05, 0.05),  # rad, peak axial rotation
     "cancellous_hu": (150.0, 260.0),  # HU
+    "posterior_scale": (0.94, 1.08),  # scale
+    "disc_scale": (0.80, 1.20),  # scale
+    "spine_rotation": (-0.08, 0.08),  # rad
+    "fat_lateral": (0.2, 1.5),  # unitless
+    "muscle_bulge": (0.0, 0.016),  # m
+    "midline_furrow": (0.0, 0.8),  # unitless
+    "supraspinous": (0.002, 0.006),  # m
+    "caudal_depth": (0.0, 0.010),  # m
+    "crest_level": (0.3, 1.1),  # unitless
+    "lordosis_apex": (0.0, 1.0),  # unitless
+    "back_curvature": (0.3, 0.9),  # unitless
+    "gluteal": (0.0, 0.040),  # m
+    "trunk_roll": (-0.12, 0.12),  # rad
 }
 
 
@@ -67,17 +84,34 @@ class PhantomParams:
     spacing: float = 0.001  # m, isotropic voxel size (0.0005-0.002)
     torso_half_width: float | None = None  # m, half the back's width
     torso_depth: float | None = None  # m, back-to-belly
-    fat_thickness: float | None = None  # m, subcutaneous fat
+    fat_thickness: float | None = None  # m, subcutaneous fat beside the spine, above L3
     muscle_bulk: float | None = None  # unitless scale of the paraspinal and psoas muscles
     vertebra_scale: float | None = None  # unitless scale of every vertebra
     lordosis: float | None = None  # rad, angle between the L1 and S1 endplates
     scoliosis: float | None = None  # m, peak lateral deviation of the spine (sign = side)
-    axial_rotation: float | None = None  # rad, peak axial rotation of the vertebrae
+    axial_rotation: float | None = None  # rad, peak axial rotation of the vertebrae (mid-spine)
     cancellous_hu: float | None = None  # HU of cancellous bone (bone density)
+    posterior_scale: float | None = None  # unitless, posterior elements relative to the bodies
+    disc_scale: float | None = None  # unitless scale of the disc heights (level spacing)
+    spine_rotation: float | None = None  # rad, axial rotation of the whole spine in the trunk
+    fat_lateral: float | None = None  # unitless, extra fat 80 mm from the midline (x thickness)
+    muscle_bulge: float | None = None  # m, paraspinal muscles' bulge behind the spinous tips
+    midline_furrow: float | None = None  # unitless 0-1, share of that furrow the skin shows
+    supraspinous: float | None = None  # m, soft tissue (ligament) over the spinous tips
+    caudal_depth: float | None = None  # m, extra soft tissue over L5 relative to L1
+    crest_level: float | None = None  # unitless, iliac crest summit from L5 (0) to L4 (1) centre
+    lordosis_apex: float | None = None  # unitless, apex of the lordosis from L3 (0) to L4 (1)
+    back_curvature: float | None = None  # unitless, share of the lordotic curve the skin follows
+    gluteal: float | None = None  # m, fat behind the sacrum rising from L3 (the buttocks' slope)
+    trunk_roll: float | None = None  # rad, the patient rolled (trunk and spine) on the table
+    level_spread: float = 0.04  # unitless, std of the per-level size changes (drawn per level)
+    disc_spread: float = 0.12  # unitless, std of the per-level disc height changes
+    lamina_spread: float = 0.0025  # m, std of how far down each level's laminae reach
+    spinous_spread: float = 0.0025  # m, std of the spinous tips' lateral deviation (per level)
     cortical_hu: float = 1400.0  # HU of cortical bone
     ct_noise_hu: float = 15.0  # HU, std of Gaussian CT noise
     fov_inferior: float = 0.125  # m, field of view below the L4 centre
-    fov_superior: float = 0.145  # m, field of view above the L4 centre
+    fov_superior: float = 0.165  # m, field of view above the L4 centre (T12 included)
 
     def __post_init__(self) -> None:
         if not 0.0005 <= self.spacing <= 0.002:
@@ -86,6 +120,15 @@ class PhantomParams:
             )
         if self.fov_inferior < 0.12 or self.fov_superior < 0.12:
             raise ValueError("the field of view must cover at least 0.12 m either side of L4")
+        spreads = {
+            "level_spread": (self.level_spread, 0.1),
+            "disc_spread": (self.disc_spread, 0.25),
+            "lamina_spread": (self.lamina_spread, 0.004),
+            "spinous_spread": (self.spinous_spread, 0.004),
+        }
+        for name, (value, top) in spreads.items():
+            if not 0 <= value <= top:
+                raise ValueError(f"{name} {value} is outside 0-{top} (a standard deviation)")
 
     def resolved(self, seed: int) -> PhantomParams:
         """A copy with every ``None`` field drawn from ``seed``."""
@@ -96,21 +139,17 @@ class PhantomParams:
         )
 
 
-# Per-level dimensions, mm (scale 1): body half-width, half-depth, half-height; canal
-# half-width, half-depth; pedicle width, height; pedicle medial angle (deg); transverse-process
-# half-span; spinous-process length. Ranges of ultrasound_physics.md §4a.
-_LEVEL_DIMS: dict[str, tuple[float, ...]] = {
-    "T12": (19.0, 15.0, 11.5, 9.5, 8.0, 7.0, 15.0, 5.0, 30.0, 28.0),
-    "L1": (20.5, 16.0, 12.5, 10.5, 8.5, 8.0, 15.0, 8.0, 34.0, 30.0),
-    "L2": (21.5, 16.5, 13.0, 10.5, 8.5, 8.5, 15.0, 10.0, 38.0, 31.0),
-    "L3": (22.5, 17.0, 13.5, 11.0, 8.5, 10.0, 15.0, 14.0, 45.0, 31.0),
-    "L4": (23.5, 17.0, 13.5, 11.5, 8.5, 11.5, 14.0, 18.0, 40.0, 29.0),
-    "L5": (25.0, 17.5, 13.0, 12.5, 8.5, 14.0, 14.0, 25.0, 43.0, 26.0),
-    "S1": (26.0, 18.0, 12.5, 13.0, 7.0, 14.0, 14.0, 25.0, 0.0, 10.0),
-}
-#: Disc heights (mm) below each level.
-_DISC_BELOW = {"T12": 7.0, "L1": 8.0, "L2": 9.0, "L3": 10.0, "L4": 11.0, "L5": 10.0}
-_LEVELS = ["T12", "L1", "L2", "L3", "L4", "L5", "S1"]
+def _level_variation(seed: int, p: PhantomParams) -> np.ndarray:
+    """(7, 5) per-level variation, T12..S1, from its own stream of the seed (each draw within
+    +-2 std): relative body and posterior-element size (std ``level_spread``), relative disc
+    height (``disc_spread``), laminae extension (mm, ``lamina_spread``) and spinous-tip lateral
+    deviation (mm, ``spinous_spread``)."""
+    rng = np.random.default_rng([int(seed), 7])
+    z = np.clip(rng.standard_normal((len(S.LEVELS), 5)), -2, 2)
+    std = [p.level_spread, p.level_spread, p.disc_spread, p.lamina_spread * 1e3,
+           p.spinous_spread * 1e3]  # fmt: skip
+    return z * np.array(std)
+
 
 # Tissue HU (ultrasound_physics.md §4c).
 _HU = {
@@ -119,6 +158,7 @@ _HU = {
     "fat": -100.0,
     "skin": 30.0,
     "muscle": 50.0,
+    "ligament": 75.0,
     "liver": 55.0,
     "kidney": 30.0,
     "blood": 40.0,
@@ -127,152 +167,9 @@ _HU = {
     "cord": 35.0,
 }
 _SKIN_MM = 2.5
-_LIGAMENT_MM = 5.0  # supraspinous soft tissue between spinous tips and fat
-_GROOVE_MM = 4.0  # midline groove of the back between the erector bulges
-
-
-@dataclass
-class _Vertebra:
-    level: str
-    label: int
-    centre: np.ndarray  # (3,) mm, world
-    rot: np.ndarray  # (3, 3) columns l, a, s in world
-    dims: tuple[float, ...]  # scaled _LEVEL_DIMS
-
-    def to_world(self, q: tuple[float, float, float]) -> np.ndarray:
-        return self.centre + self.rot @ np.asarray(q, dtype=np.float64)
-
-    @property
-    def canal_a(self) -> float:
-        return -self.dims[1] - self.dims[4]
-
-
-# ----------------------------------------------------------------------------- spine
-
-
-def _spine(p: PhantomParams) -> list[_Vertebra]:
-    """Place T12..S1 along a lordotic, scoliotic curve; L4's body centre at z = 0."""
-    sc = p.vertebra_scale
-    dims = {
-        k: tuple(v * sc if i != 7 else v for i, v in enumerate(d)) for k, d in _LEVEL_DIMS.items()
-    }
-    # Arc-length position of each body centre, L4 at 0, positive upward.
-    arc = {"L4": 0.0}
-    order = _LEVELS
-    i4 = order.index("L4")
-    for i in range(i4 - 1, -1, -1):  # upward
-        lo, up = order[i + 1], order[i]
-        arc[up] = arc[lo] + dims[lo][2] + _DISC_BELOW[up] * sc + dims[up][2]
-    for i in range(i4 + 1, len(order)):  # downward
-        up, lo = order[i - 1], order[i]
-        arc[lo] = arc[up] - dims[up][2] - _DISC_BELOW[up] * sc - dims[lo][2]
-    s_lo, s_hi = arc["S1"], arc["T12"]
-    apex = arc["L3"]
-    kappa = p.lordosis / (arc["L1"] - arc["S1"])  # rad per mm (constant curvature)
-
-    s_grid = np.arange(s_lo - 60.0, s_hi + 60.0, 0.25)
-    phi = -kappa * (s_grid - apex)
-    span = np.clip((s_grid - s_lo) / (s_hi - s_lo), 0, 1)
-    x = p.scoliosis * 1e3 * np.sin(np.pi * span)
-    psi = p.axial_rotation * np.sin(np.pi * span)
-    ds = 0.25
-    y = np.cumsum(np.sin(phi)) * ds
-    z = np.cumsum(np.cos(phi)) * ds
-    k0 = int(np.argmin(np.abs(s_grid)))
-    y, z = y - y[k0], z - z[k0]
-    dx = np.gradient(x, ds)
-
-    out = []
-    for lev in order:
-        k = int(np.argmin(np.abs(s_grid - arc[lev])))
-        t = np.array([dx[k], np.sin(phi[k]), np.cos(phi[k])])
-        s_ax = t / np.linalg.norm(t)
-        a0 = np.array([0.0, 1.0, 0.0]) - s_ax[1] * s_ax
-        a0 /= np.linalg.norm(a0)
-        l0 = np.cross(a0, s_ax)
-        c, s = math.cos(psi[k]), math.sin(psi[k])
-        l_ax, a_ax = c * l0 + s * a0, -s * l0 + c * a0
-        rot = np.stack([l_ax, a_ax, s_ax], 1)
-        out.append(
-            _Vertebra(lev, L.VERTEBRA_IDS[lev], np.array([x[k], y[k], z[k]]), rot, dims[lev])
-        )
-    return out
-
-
-def _vertebra_sdf(
-    v: _Vertebra, lq: torch.Tensor, aq: torch.Tensor, sq: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """SDF (mm) of a vertebra in its local frame; returns (bone, body part)."""
-    bw, bd, bh, cw, cd, pw, ph, ang, tps, spl = v.dims
-    body = extrude(superellipse2(lq, aq, bw - 1.5, bd - 1.5, 2.6), sq, bh - 1.5) - 1.5
-    a_c = v.canal_a
-    canal = extrude(ellipse2(lq, aq - a_c, cw, cd), sq, bh + 12.0)
-    s_p = 0.25 * bh
-    th = math.radians(ang)
-    sn, cs = math.sin(th), math.cos(th)
-    a_back = a_c - cd  # posterior border of the canal
-    post = None
-    for side in (1.0, -1.0):
-        ul, ua = lq - side * (cw + pw / 2), aq - a_c
-        u = ul * (-side * sn) + ua * cs  # along the pedicle axis, anterior positive
-        w = ul * cs + ua * (side * sn)
-        half = (cd + 8.0) / cs
-        parts = [extrude(ellipse2(w, sq - s_p, pw / 2, ph / 2), u, half)]
-        parts.append(
-            extrude(
-                segment2(lq, aq, (side * (cw + 2.0), a_back + 1.0), (0.0, a_back - 5.0)) - 3.0,
-                sq + 0.15 * bh,
-                0.75 * bh,
-            )
-        )
-        if tps > 0:
-            parts.append(
-                capsule(
-                    lq,
-                    aq,
-                    sq,
-                    (side * (cw + pw / 2 + 1), a_back + 3, s_p),
-                    (side * tps, a_back - 1, s_p + 3),
-                    4.5,
-                )
-            )
-        parts.append(
-            capsule(
-                lq,
-                aq,
-                sq,
-                (side * (cw + 6), a_back - 2, s_p),
-                (side * (cw + 6.5), a_back - 5, bh + 7),
-                3.5,
-            )
-        )
-        parts.append(
-            capsule(
-                lq,
-                aq,
-                sq,
-                (side * (cw - 1), a_back - 6, -0.2 * bh),
-                (side * (cw - 1.5), a_back - 9, -bh - 8),
-                3.5,
-            )
-        )
-        if v.level == "S1":  # sacral ala, toward the sacroiliac joint
-            parts.append(
-                capsule(
-                    lq, aq, sq, (side * bw * 0.6, -4.0, 0.0), (side * 52.0, a_c + 2, -8.0), 12.0
-                )
-            )
-        for part in parts:
-            post = part if post is None else smooth_union(post, part, 2.0)
-    spinous = extrude(
-        segment2(aq, sq, (a_back - 4.0, -0.1 * bh), (a_back - 4.0 - spl, -0.1 * bh - 8.0)) - 7.5,
-        lq,
-        3.0,
-    )
-    post = smooth_union(post, spinous, 2.0)
-    bone = smooth_union(body, post, 1.5)
-    bone = torch.maximum(bone, -canal)
-    return bone, body
+_MIN_COVER_MM = 2.0  # fat between the skin and a bone that reaches the back's surface
+_FASCIA_MM = 1.5  # thoracolumbar fascia over the paraspinal muscles
+_FURROW_SIGMA = 14.0  # mm, half-width scale of the midline furrow between the muscle bulges
 
 
 # ----------------------------------------------------------------------------- canvas
@@ -306,33 +203,98 @@ class _Canvas:
 
     def paint(self, sl, sdf: torch.Tensor, label: int, hu) -> None:
         """Write ``label`` where sdf < 0 and blend CT by partial volume (occupancy of the voxel)."""
-        occ = (0.5 - sdf / self.h).clamp_(0, 1)
+        occ = sdf.mul(-1.0 / self.h).add_(0.5).clamp_(0, 1)
         ct = self.ct[sl]
-        hu_t = hu if isinstance(hu, torch.Tensor) else torch.tensor(hu, dtype=torch.float32)
-        ct += occ * (hu_t - ct)
-        self.labels[sl][sdf < 0] = label
+        ct.addcmul_(occ, torch.sub(hu, ct) if isinstance(hu, torch.Tensor) else ct.neg().add_(hu))
+        self.labels[sl].masked_fill_(sdf < 0, label)
 
     def z_chunks(self, n: int = 24):
         for k0 in range(0, self.shape[2], n):
             yield (slice(None), slice(None), slice(k0, min(k0 + n, self.shape[2])))
 
+    def union(self, parts: list[S.Part]):
+        """(index box, SDF there, first part's SDF there) of the fillet-joined parts; each part
+        is evaluated only in its own box (plus the fillet), or None if no part is in view."""
+        margin = S._FILLET + 2 * self.h
+        boxes = [p.world_box(margin) for p in parts]
+        sl = self.box(np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0))
+        if sl is None:
+            return None
+        shape = tuple(s.stop - s.start for s in sl)
+        acc = torch.full(shape, 1e3)
+        first = torch.full(shape, 1e3)
+        for k, (part, (lo, hi)) in enumerate(zip(parts, boxes, strict=True)):
+            sub = self.box(lo, hi)
+            if sub is None:
+                continue
+            rel = tuple(
+                slice(max(a.start, b.start) - b.start, min(a.stop, b.stop) - b.start)
+                for a, b in zip(sub, sl, strict=True)
+            )
+            if any(r.stop <= r.start for r in rel):
+                continue
+            glob = tuple(
+                slice(r.start + b.start, r.stop + b.start) for r, b in zip(rel, sl, strict=True)
+            )
+            u, v, w = S.local_coords(part.centre, part.rot, *self.coords(glob))
+            d = part.fn(u, v, w)
+            acc[rel] = smooth_union(acc[rel], d, S._FILLET)
+            if k == 0:
+                first[rel] = d
+        return sl, acc, first
 
-def _local(v: _Vertebra, x, y, z):
-    dx, dy, dz = x - v.centre[0], y - v.centre[1], z - v.centre[2]
-    r = v.rot
-    return (
-        dx * r[0, 0] + dy * r[1, 0] + dz * r[2, 0],
-        dx * r[0, 1] + dy * r[1, 1] + dz * r[2, 1],
-        dx * r[0, 2] + dy * r[1, 2] + dz * r[2, 2],
-    )
+    def paint_bone(self, sl, bone, body, label: int, p: PhantomParams) -> None:
+        """Cortical shell (1 mm on the body, 2 mm elsewhere) over cancellous bone."""
+        t_cortex = torch.where(body <= bone + 0.5, 1.0, 2.0)
+        hu = p.cancellous_hu + (p.cortical_hu - p.cancellous_hu) * (
+            (bone + t_cortex) / self.h + 0.5
+        ).clamp(0, 1)
+        self.paint(sl, bone, label, hu)
 
 
-def _local_box(v: _Vertebra, lo, hi):
-    corners = np.array(
-        [[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
-    )
-    world = v.centre + corners @ v.rot.T
-    return world.min(0), world.max(0)
+def _near(mask: torch.Tensor, reach: int) -> torch.Tensor:
+    """Voxels within ``reach`` voxels of ``mask`` along every axis (a cube around each)."""
+    x = mask[None, None].to(torch.float32)
+    for k in range(3):
+        size = [1, 1, 1]
+        size[k] = 2 * reach + 1
+        pad = [0, 0, 0]
+        pad[k] = reach
+        x = torch.nn.functional.max_pool3d(x, tuple(size), stride=1, padding=tuple(pad))
+    return x[0, 0] > 0
+
+
+def _cover_bone(cv) -> None:
+    """Bone drawn through the back's surface (an iliac crest on a thin, rolled trunk: the
+    pelvis turns with the spine, the skin does not) becomes skin and fat, so every bone lies
+    under the skin and ``_MIN_COVER_MM`` of fat as it does in a patient."""
+    air = cv.labels == 0
+    reach = math.ceil((_SKIN_MM + _MIN_COVER_MM) / cv.h)
+    bone = torch.isin(cv.labels, torch.tensor(sorted(L.BONE_IDS), dtype=cv.labels.dtype))
+    exposed = bone & _near(air, reach)
+    if not exposed.any():
+        return
+    skin = exposed & _near(air, math.ceil(_SKIN_MM / cv.h))
+    fat = exposed & ~skin
+    cv.labels[skin] = L.SKIN
+    cv.ct[skin] = _HU["skin"]
+    cv.labels[fat] = L.SUBCUTANEOUS_FAT
+    cv.ct[fat] = _HU["fat"]
+
+
+def _round_rect(u: torch.Tensor, v: torch.Tensor, hu: float, hv, r: float) -> torch.Tensor:
+    """2-D rectangle of half-sizes (hu, hv) with corners rounded by r (hv may be a tensor)."""
+    qu = u.abs() - (hu - r)
+    qv = v.abs() - (hv - r)
+    out = torch.sqrt(qu.clamp_min(0) ** 2 + qv.clamp_min(0) ** 2)
+    return out + torch.maximum(qu, qv).clamp_max(0) - r
+
+
+def _interp(zs: np.ndarray, vs: np.ndarray, z: torch.Tensor) -> torch.Tensor:
+    """Anchor line (zs, vs) interpolated at grid z (tensor (1, 1, nz)) -> (1, 1, nz)."""
+    order = np.argsort(zs)
+    out = np.interp(z.flatten().numpy(), zs[order], vs[order])
+    return torch.tensor(out, dtype=torch.float32).view(1, 1, -1)
 
 
 # ----------------------------------------------------------------------------- generator
@@ -342,70 +304,134 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
     """Build the procedural phantom for ``seed`` (deterministic; no I/O)."""
     p = (params or PhantomParams()).resolved(seed)
     h = p.spacing * 1e3
-    verts = _spine(p)
+    verts = S.place_spine(
+        p.vertebra_scale, p.posterior_scale, p.disc_scale, p.lordosis, p.lordosis_apex,
+        p.scoliosis * 1e3,
+        p.axial_rotation, p.spine_rotation + p.trunk_roll, _level_variation(seed, p),
+    )  # fmt: skip
     by = {v.level: v for v in verts}
+    sacrum = S.sacral_segments(by["S1"], p.vertebra_scale)
 
-    # Anchor lines of the back, as functions of z (mm): spinous tips, transverse-process tips.
-    def anchor(q_fn):
-        pts = np.array([v.to_world(q_fn(v)) for v in verts if v.level != "S1"])
-        order = np.argsort(pts[:, 2])
-        return pts[order]
-
-    tips = anchor(
-        lambda v: (0.0, v.canal_a - v.dims[4] - 4.0 - v.dims[9] - 7.5, -0.1 * v.dims[2] - 8.0)
-    )
-    tps = anchor(lambda v: (0.0, v.canal_a - v.dims[4] + 1.0, 0.25 * v.dims[2]))
-    bodies = np.array(sorted((v.centre for v in verts), key=lambda c: c[2]))
+    # Anchor lines of the back (world mm, as functions of z): the midline's posterior bone
+    # (spinous tips, then the sacral crest), the transverse processes and the bodies.
+    lumbar = [v for v in verts if v.level != "S1"]
+    tips = np.array([v.to_world(v.spinous_tip) for v in lumbar])
+    crest = [v.to_world((0.0, v.canal_back - 5.0 - 6.0 * p.vertebra_scale, 0.0))
+             for v in [by["S1"], *sacrum[:2]]]  # fmt: skip
+    back_line = np.concatenate([tips, np.array(crest)])
+    apex = np.array([v.to_world((0.0, v.apex_a, v.spinous_tip_s)) for v in lumbar])
+    tp_line = np.array([v.to_world((0.0, v.junction[1], v.pedicle_s)) for v in lumbar])
+    bodies = np.array([v.centre for v in verts])
 
     fat = p.fat_thickness * 1e3
     half_w = p.torso_half_width * 1e3
     depth = p.torso_depth * 1e3
+    m = p.muscle_bulk
+    bulge, furrow = p.muscle_bulge * 1e3, p.midline_furrow
     z_lo, z_hi = -p.fov_inferior * 1e3, p.fov_superior * 1e3
-    zz = np.arange(z_lo - 20, z_hi + 20, 1.0)
-    y_skin_mid = np.interp(zz, tips[:, 2], tips[:, 1]) - (_SKIN_MM + fat + _LIGAMENT_MM)
-    y_post = y_skin_mid - _GROOVE_MM
-    lo = np.array([-(half_w + 12.0), y_post.min() - 12.0, z_lo])
-    hi = np.array([half_w + 12.0, y_post.max() + depth + 12.0, z_hi])
+    z_l1, z_l5 = by["L1"].centre[2], by["L5"].centre[2]
+
+    def cover(z):  # soft tissue between the fascia and the midline bone, growing caudally
+        t = ((z_l1 - z) / (z_l1 - z_l5)).clamp(0, 1)
+        return p.supraspinous * 1e3 + p.caudal_depth * 1e3 * t
+
+    z_l3, z_s2 = by["L3"].centre[2], sacrum[0].centre[2]
+
+    def buttock(z):  # extra fat rising smoothly from L3 down to S2 (the back's lower slope)
+        t = ((z_l3 - z) / (z_l3 - z_s2)).clamp(0, 1)
+        return p.gluteal * 1e3 * t * t * (3 - 2 * t)
+
+    # Midline skin: above the midline bone by skin, fat (plus the part of the muscle furrow the
+    # fat fills), fascia and the ligament cover.
+    zz = torch.arange(z_lo - 20, z_hi + 20, 1.0).view(1, 1, -1)
+    y_bone = _interp(back_line[:, 2], back_line[:, 1], zz)
+    # The back's skin follows only part of the lordotic curve of the midline bone (soft tissue
+    # fills the hollow): the bone line, pulled toward its straight chord from L1 to L5.
+    e1, e5 = (by[lv].to_world(by[lv].spinous_tip) for lv in ("L1", "L5"))
+    chord = e5[1] + (e1[1] - e5[1]) / (e1[2] - e5[2]) * (zz - e5[2])
+    flat = (1 - p.back_curvature) * (y_bone - chord).clamp_min(0)
+    y_bone_skin = y_bone - flat
+    y_skin_mid = y_bone_skin - (_SKIN_MM + fat + buttock(zz) + (1 - furrow) * bulge
+                                + _FASCIA_MM + cover(zz))  # fmt: skip
+    y_post = (y_skin_mid - furrow * bulge).flatten().numpy()  # paramedian skin
+    zz = zz.flatten().numpy()
+    roll = abs(p.trunk_roll)  # a rolled trunk reaches further out at its corners
+    side, back = 12.0 + roll * 80.0, 12.0 + roll * half_w
+    lo = np.array([-(half_w + side), y_post.min() - back, z_lo])
+    hi = np.array([half_w + side, y_post.max() + depth + back, z_hi])
     lo = np.round(lo / h) * h
     shape = tuple(int(round((hi[i] - lo[i]) / h)) + 1 for i in range(3))
     cv = _Canvas(lo, shape, h)
 
-    def zf(arr_z, arr_v, z):  # interpolate an anchor line at grid z (tensor (1,1,nz))
-        return torch.tensor(np.interp(z.flatten().numpy(), arr_z, arr_v), dtype=torch.float32).view(
-            1, 1, -1
-        )
-
-    m = p.muscle_bulk
-    # --- torso, soft-tissue layers and muscles, slab by slab
+    # --- torso, skin, fat, fascia and paraspinal muscles, slab by slab
+    roll_c, roll_s = math.cos(p.trunk_roll), math.sin(p.trunk_roll)
+    psi = p.spine_rotation + p.trunk_roll  # the spine's rotation (its mid-spine peak aside)
+    spine_c, spine_s = math.cos(psi), math.sin(psi)
     for sl in cv.z_chunks():
         x, y, z = cv.coords(sl)
-        yp = zf(zz, y_post, z)
+        yp = _interp(zz, y_post, z)
+        xs = _interp(back_line[:, 2], back_line[:, 0], z)
+        # The trunk (skin, fat) is rolled by trunk_roll about the vertebral bodies' line, as
+        # the spine is; (xr, yr) are the unrolled coordinates and xm the muscles' lateral
+        # coordinate in the spine's rotated frame (the muscles lie on the spine).
+        yt = _interp(back_line[:, 2], back_line[:, 1], z)
+        xb_t, yb_t = (_interp(bodies[:, 2], bodies[:, k], z) for k in (0, 1))
+        xr = xb_t + (x - xb_t) * roll_c + (y - yb_t) * roll_s
+        yr = yb_t - (x - xb_t) * roll_s + (y - yb_t) * roll_c
+        xs_r = xb_t + (xs - xb_t) * roll_c + (yt - yb_t) * roll_s
+        xm = xs + (x - xs) * spine_c + (y - yt) * spine_s
+        ym = yt - (x - xs) * spine_s + (y - yt) * spine_c
         yc = yp + depth / 2
         taper = 1.0 + 0.06 * (-z / 125.0).clamp(-1, 1)
         torso = superellipse2(
-            x / (half_w * taper), (y - yc) / (depth / 2), 1.0, 1.0, 2.3
+            xr / (half_w * taper), (yr - yc) / (depth / 2), 1.0, 1.0, 2.3
         ) * torch.minimum(half_w * taper, torch.full_like(taper, depth / 2))
-        back = ((yc - y) / (depth / 2)).clamp(0, 1)
-        torso = torso + _GROOVE_MM * torch.exp(-(x**2) / (2 * 18.0**2)) * back
-        cv.paint(sl, torso, L.BODY_TRUNC, _HU["soft"])
-        # Paraspinal muscles (autochthon): from the transverse processes to under the fat.
-        y_front = zf(tps[:, 2], tps[:, 1], z) + 8.0
-        y_back = zf(zz, y_skin_mid, z)
-        cy, ry = (y_front + y_back) / 2, (y_front - y_back) / 2 + 4.0
-        xs = zf(bodies[:, 2], bodies[:, 0], z)
+        back = ((yc - yr) / (depth / 2)).clamp(0, 1)
+        mid = torch.exp(-((xr - xs_r) ** 2) / (2 * _FURROW_SIGMA**2))
+        torso = torso + furrow * bulge * mid * back
+        # Skin over the whole body first, then the layers inside it: the body's outer surface
+        # is blended by partial volume once (its -500 HU crossing stays on the labels' edge).
+        cv.paint(sl, torso, L.SKIN, _HU["skin"])
+        cv.paint(sl, torso + _SKIN_MM, L.BODY_TRUNC, _HU["soft"])
+        lat = 1.0 + p.fat_lateral * ((xr - xs_r).clamp(-120, 120) / 80.0) ** 2
+        fat_x = fat * lat + buttock(z) + (1 - furrow) * bulge * mid
+        under_fat = torso + _SKIN_MM + fat_x  # < 0 below the fat
+        # Paraspinal muscles: from the midline to their lateral border, from under the fascia
+        # to the front of the transverse processes.
+        y_front = _interp(tp_line[:, 2], tp_line[:, 1], z) + 6.0
+        y_top = yp - 5.0
+        cy, ry = (y_front + y_top) / 2, (y_front - y_top) / 2
+        width = 64.0 * m
         for side, lab in ((1.0, 87), (-1.0, 86)):
-            d = ellipse2(x - xs - side * 36.0 * m, (y - cy) / ry * 30.0, 36.0 * m, 30.0)
-            cv.paint(sl, torch.maximum(d, torso), lab, _HU["muscle"])
-        # Skin and subcutaneous fat as layers under the surface.
-        fat_sdf = torch.maximum(-(torso + _SKIN_MM + fat), torso + _SKIN_MM)
+            d = _round_rect(xm - xs - side * width / 2, ym - cy, width / 2, ry, 15.0)
+            d = torch.maximum(d, -side * (xm - xs))
+            cv.paint(sl, torch.maximum(d, under_fat + _FASCIA_MM), lab, _HU["muscle"])
+        fascia = torch.maximum(under_fat, -(under_fat + _FASCIA_MM))
+        fascia = torch.maximum(fascia, (xm - xs).abs() - (width + 8.0))
+        cv.paint(sl, fascia, L.THORACOLUMBAR_FASCIA, _HU["ligament"])
+        fat_sdf = torch.maximum(-under_fat, torso + _SKIN_MM)
         cv.paint(sl, fat_sdf, L.SUBCUTANEOUS_FAT, _HU["fat"])
-        skin_sdf = torch.maximum(-(torso + _SKIN_MM), torso)
-        cv.paint(sl, skin_sdf, L.SKIN, _HU["skin"])
 
-    yb = lambda zv: float(np.interp(zv, bodies[:, 2], bodies[:, 1]))  # noqa: E731
-    xb = lambda zv: float(np.interp(zv, bodies[:, 2], bodies[:, 0]))  # noqa: E731
+    # --- supra- and interspinous ligaments: the midline sheet from the fascia to the laminae
+    top = back_line[:, 1].min() - 40.0
+    sl = cv.box(np.array([-30.0 + back_line[:, 0].min(), top, tips[:, 2].min() - 30.0]),
+                np.array([30.0 + back_line[:, 0].max(), apex[:, 1].max() + 5.0,
+                          tips[:, 2].max() + 30.0]))  # fmt: skip
+    x, y, z = cv.coords(sl)
+    xt = _interp(tips[:, 2], tips[:, 0], z)
+    yt = _interp(tips[:, 2], tips[:, 1], z)
+    ya = _interp(apex[:, 2], apex[:, 1], z)
+    half = torch.where(y < yt + 2.0, 4.0, 2.5)  # supraspinous wider than interspinous
+    xc = xt - (y - yt) * math.tan(psi)  # the spinous processes' plane, rotated with the spine
+    sheet = torch.maximum((x - xc).abs() - half, torch.maximum(yt - cover(z) - y, y - ya))
+    keep = cv.labels[sl] != L.SUBCUTANEOUS_FAT  # under the fat only
+    cv.paint(sl, torch.where(keep, sheet, sheet.clamp_min(0.5 * h + 1e-3)),
+             L.SPINAL_LIGAMENTS, _HU["ligament"])  # fmt: skip
+
+    yb = lambda zv: float(np.interp(zv, bodies[::-1, 2], bodies[::-1, 1]))  # noqa: E731
+    xb = lambda zv: float(np.interp(zv, bodies[::-1, 2], bodies[::-1, 0]))  # noqa: E731
     l1, l2, l4, l5, t12 = by["L1"], by["L2"], by["L4"], by["L5"], by["T12"]
-    bd = l4.dims[1]
+    bd = l4.dims.body_half_depth
 
     def blob(label, hu, centre, radii, clip_body=True):
         c = np.asarray(centre)
@@ -430,8 +456,9 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
     # --- organs (only inside generic soft tissue, never over muscle, fat or skin)
     blob(5, _HU["liver"], (65.0, yb(t12.centre[2]) + 80, t12.centre[2] + 55), (115.0, 95.0, 105.0))
     zk = l2.centre[2]
-    blob(3, _HU["kidney"], (-(l2.dims[0] + 52), yb(zk) + 12, zk + 5), (26.0, 22.0, 52.0))
-    blob(2, _HU["kidney"], (l2.dims[0] + 52, yb(zk) + 12, zk - 12), (26.0, 22.0, 52.0))
+    bw2 = l2.dims.body_half_width
+    blob(3, _HU["kidney"], (-(bw2 + 52), yb(zk) + 12, zk + 5), (26.0, 22.0, 52.0))
+    blob(2, _HU["kidney"], (bw2 + 52, yb(zk) + 12, zk - 12), (26.0, 22.0, 52.0))
 
     # --- iliopsoas, growing caudally
     z_top = t12.centre[2]
@@ -440,11 +467,11 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
     zc = z.clamp(l5.centre[2], l1.centre[2])
     grow = ((l1.centre[2] - zc) / (l1.centre[2] - l5.centre[2])).clamp(0, 1)
     below = (l5.centre[2] - z).clamp_min(0)
-    yb_t = zf(bodies[:, 2], bodies[:, 1], z)
-    xs_t = zf(bodies[:, 2], bodies[:, 0], z)
+    yb_t = _interp(bodies[:, 2], bodies[:, 1], z)
+    xs_t = _interp(bodies[:, 2], bodies[:, 0], z)
     rx, ry = (8.0 + 14.0 * grow) * m, (9.0 + 11.0 * grow) * m
     for side, lab in ((1.0, 89), (-1.0, 88)):
-        cx = xs_t + side * (l4.dims[0] + rx * 0.8 + 0.4 * below)
+        cx = xs_t + side * (l4.dims.body_half_width + rx * 0.8 + 0.4 * below)
         d = ellipse2((x - cx) / rx, (y - yb_t - 4.0 - 0.3 * below) / ry, 1.0, 1.0) * torch.minimum(
             rx, ry
         )
@@ -455,133 +482,101 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
     # --- great vessels
     z_bif = l4.centre[2] - 8.0
     ya = lambda zv: yb(zv) + bd + 13.0  # noqa: E731
-    tube(
-        52,
-        _HU["blood"],
-        (xb(z_bif) - 14, ya(z_bif), z_bif),
-        (xb(z_hi) - 14, ya(z_hi), z_hi + 10),
-        10.0,
-    )
+    tube(52, _HU["blood"], (xb(z_bif) - 14, ya(z_bif), z_bif),
+         (xb(z_hi) - 14, ya(z_hi), z_hi + 10), 10.0)  # fmt: skip
     z_ivc = l5.centre[2] + 5.0
-    tube(
-        63,
-        _HU["blood"],
-        (xb(z_ivc) + 20, ya(z_ivc) + 1, z_ivc),
-        (xb(z_hi) + 20, ya(z_hi) + 1, z_hi + 10),
-        11.0,
-    )
+    tube(63, _HU["blood"], (xb(z_ivc) + 20, ya(z_ivc) + 1, z_ivc),
+         (xb(z_hi) + 20, ya(z_hi) + 1, z_hi + 10), 11.0)  # fmt: skip
     ybot = yb(z_lo) + bd + 25.0
     tube(65, _HU["blood"], (xb(z_bif) - 14, ya(z_bif), z_bif), (-50.0, ybot, z_lo - 10), 6.5)
     tube(66, _HU["blood"], (xb(z_bif) - 14, ya(z_bif), z_bif), (45.0, ybot, z_lo - 10), 6.5)
-    tube(
-        67, _HU["blood"], (xb(z_ivc) + 20, ya(z_ivc) + 1, z_ivc), (-40.0, ybot + 10, z_lo - 10), 7.5
-    )
-    tube(
-        68, _HU["blood"], (xb(z_ivc) + 20, ya(z_ivc) + 1, z_ivc), (55.0, ybot + 10, z_lo - 10), 7.5
-    )
+    tube(67, _HU["blood"], (xb(z_ivc) + 20, ya(z_ivc) + 1, z_ivc),
+         (-40.0, ybot + 10, z_lo - 10), 7.5)  # fmt: skip
+    tube(68, _HU["blood"], (xb(z_ivc) + 20, ya(z_ivc) + 1, z_ivc),
+         (55.0, ybot + 10, z_lo - 10), 7.5)  # fmt: skip
 
-    # --- discs between consecutive bodies
+    # --- discs between consecutive bodies (the bodies' kidney-shaped section)
     for up, low in zip(verts[:-1], verts[1:], strict=True):
-        e_up = up.centre - up.dims[2] * up.rot[:, 2]
-        e_lo = low.centre + low.dims[2] * low.rot[:, 2]
+        e_up = up.centre - up.dims.body_half_height * up.rot[:, 2]
+        e_lo = low.centre + low.dims.body_half_height * low.rot[:, 2]
         c = (e_up + e_lo) / 2
         rot = up.rot + low.rot
         s_ax = rot[:, 2] / np.linalg.norm(rot[:, 2])
         a_ax = rot[:, 1] - (rot[:, 1] @ s_ax) * s_ax
         a_ax /= np.linalg.norm(a_ax)
-        dv = _Vertebra("disc", 0, c, np.stack([np.cross(a_ax, s_ax), a_ax, s_ax], 1), ())
+        frame = np.stack([np.cross(a_ax, s_ax), a_ax, s_ax], 1)
         hh = np.linalg.norm(e_up - e_lo) / 2 + 1.0
-        rw, rd = min(up.dims[0], low.dims[0]) * 0.97, min(up.dims[1], low.dims[1]) * 0.97
-        bmin, bmax = _local_box(dv, (-rw, -rd, -hh), (rw, rd, hh))
-        sl = cv.box(bmin, bmax)
-        if sl is None:
-            continue
-        lq, aq, sq = _local(dv, *cv.coords(sl))
-        cv.paint(
-            sl,
-            extrude(superellipse2(lq, aq, rw, rd, 2.6), sq, hh),
-            L.INTERVERTEBRAL_DISCS,
-            _HU["disc"],
-        )
+        rw = min(up.dims.body_half_width, low.dims.body_half_width) * 0.97
+        rd = min(up.dims.body_half_depth, low.dims.body_half_depth) * 0.97
 
-    # --- spinal canal, cord, vertebrae (canal first: vertebrae are carved around it)
+        def disc(u, v, w, rw=rw, rd=rd, hh=hh):
+            sec = S.body_section(u, v, rw, rd)
+            qs = w.abs() - hh
+            out = torch.sqrt(sec.clamp_min(0) ** 2 + qs.clamp_min(0) ** 2)
+            return out + torch.maximum(sec, qs).clamp_max(0)
+
+        got = cv.union([S.Part(c, frame, (-rw, -rd, -hh), (rw, rd, hh), disc)])
+        if got is not None:
+            cv.paint(got[0], got[1], L.INTERVERTEBRAL_DISCS, _HU["disc"])
+
+    # --- spinal canals (all levels first: neighbouring canals overlap at the discs), then the
+    # cord and the ligamentum flavum behind the canals, then the bones (each carved around its
+    # own canal)
+    canals = []
     for v in verts:
-        bw, bdv, bh, cw, cd = v.dims[:5]
-        reach = max(bw + 60.0, v.dims[8] + 8.0)
-        bmin, bmax = _local_box(
-            v, (-reach, v.canal_a - cd - v.dims[9] - 25, -bh - 30), (reach, bdv + 3, bh + 30)
-        )
-        sl = cv.box(bmin, bmax)
+        bh = v.dims.body_half_height
+        reach = v.dims.canal_half_width + 2.0
+        part = S.Part(v.centre, v.rot, (-reach, v.canal_back - 2.0, -bh - 12.0),
+                      (reach, v.canal_a + v.dims.canal_half_depth + 2.0, bh + 12.0),
+                      lambda u, a, s, v=v: S.canal_sdf(v, u, a, s))  # fmt: skip
+        sl = cv.box(*part.world_box(2 * h))
         if sl is None:
             continue
-        lq, aq, sq = _local(v, *cv.coords(sl))
-        canal = extrude(ellipse2(lq, aq - v.canal_a, cw, cd), sq, bh + 12.0)
+        lq, aq, sq = S.local_coords(v.centre, v.rot, *cv.coords(sl))
+        canal = S.canal_sdf(v, lq, aq, sq)
         cv.paint(sl, canal, L.SPINAL_CANAL, _HU["csf"])
+        canals.append((v, sl, lq, aq, sq))
+    for v, sl, lq, aq, sq in canals:
+        bh = v.dims.body_half_height
         if v.level in ("T12", "L1"):  # the cord ends (conus) at the L1 body
             s0 = -0.2 * bh if v.level == "L1" else -bh - 12.0
-            cord = extrude(
-                ellipse2(lq, aq - v.canal_a, 4.5, 4.0), sq - (s0 + bh + 12) / 2, (bh + 12 - s0) / 2
-            )
+            cord = ellipse2(lq, aq - v.canal_a, 4.5, 4.0)
+            qs = (sq - (s0 + bh + 12) / 2).abs() - (bh + 12 - s0) / 2
+            cord = torch.maximum(cord, qs)
             cv.paint(sl, cord, 79, _HU["cord"])
-        bone, body = _vertebra_sdf(v, lq, aq, sq)
-        t_cortex = torch.where(body <= bone + 0.5, 1.0, 2.0)
-        hu = p.cancellous_hu + (p.cortical_hu - p.cancellous_hu) * (
-            (bone + t_cortex) / cv.h + 0.5
-        ).clamp(0, 1)
-        cv.paint(sl, bone, v.label, hu)
-
-    # --- sacrum below S1: two tapering segments bending posteriorly, with alae
-    s1 = by["S1"]
-    for k, (ds, da, rw, rd, hh) in enumerate(
-        ((24.0, -5.0, 21.0, 12.0, 9.0), (42.0, -13.0, 15.0, 9.0, 8.0))
-    ):
-        c = s1.to_world((0.0, da, -s1.dims[2] - ds + 12.0))
-        sv = _Vertebra("S", 25, c, s1.rot, ())
-        bmin, bmax = _local_box(sv, (-60, -40, -hh - 6), (60, 25, hh + 6))
-        sl = cv.box(bmin, bmax)
-        if sl is None:
+    for up, down in zip(verts[:-1], verts[1:], strict=True):  # the canals' back wall between
+        got = cv.union([S.flavum(up, down)])  # laminae: the ligamentum flavum
+        if got is not None:
+            cv.paint(got[0], got[1], L.SPINAL_LIGAMENTS, _HU["ligament"])
+    for i, v in enumerate(verts):
+        above = verts[i - 1] if i > 0 else None
+        below = verts[i + 1] if i + 1 < len(verts) else None
+        got = cv.union(S.vertebra_parts(v, above, below))
+        if got is None:
             continue
-        lq, aq, sq = _local(sv, *cv.coords(sl))
-        seg = extrude(superellipse2(lq, aq, rw, rd, 2.4), sq, hh)
-        dorsal = extrude(segment2(lq, aq, (-rw * 0.8, -rd - 6), (rw * 0.8, -rd - 6)) - 4.0, sq, hh)
-        seg = smooth_union(seg, dorsal, 3.0)
-        if k == 0:
-            for side in (1.0, -1.0):
-                seg = smooth_union(
-                    seg,
-                    capsule(
-                        lq, aq, sq, (side * rw * 0.5, -3.0, 0.0), (side * 48.0, -8.0, 2.0), 9.0
-                    ),
-                    3.0,
-                )
-        hu = p.cancellous_hu + (p.cortical_hu - p.cancellous_hu) * ((seg + 1.5) / cv.h + 0.5).clamp(
-            0, 1
-        )
-        cv.paint(sl, seg, 25, hu)
+        sl, bone, body = got
+        lq, aq, sq = S.local_coords(v.centre, v.rot, *cv.coords(sl))
+        bone = torch.maximum(bone, -S.canal_sdf(v, lq, aq, sq))
+        cv.paint_bone(sl, bone, body, v.label, p)
 
-    # --- iliac wings (hip_left 77, hip_right 78): curved plates, crest near the L4/L5 disc
-    z_crest = (l4.centre[2] - l4.dims[2] + l5.centre[2] + l5.dims[2]) / 2 + 4.0
-    yc_il = yb(l5.centre[2]) - 5.0
+    # --- iliac bones (hip_left 77, hip_right 78), then the sacrum below S1 over them
     for side, lab in ((-1.0, 77), (1.0, 78)):
-        cx = side * 72.0
-        sl = cv.box(
-            np.array([cx - 60, yc_il - 75, z_lo]), np.array([cx + 60, yc_il + 75, z_crest + 2])
-        )
-        x, y, z = cv.coords(sl)
-        dx, dy = x - cx, y - yc_il
-        shell = ellipse2(dx, dy, 47.0, 66.0).abs() - 3.5
-        shell = torch.maximum(shell, -side * dx - 26.0)
-        shell = torch.maximum(shell, dy - 35.0)
-        shell = torch.maximum(shell, z - (z_crest - 0.002 * dy**2))
-        hu = p.cancellous_hu + (p.cortical_hu - p.cancellous_hu) * (
-            (shell + 2.0) / cv.h + 0.5
-        ).clamp(0, 1)
-        cv.paint(sl, shell, lab, hu)
+        got = cv.union(S.ilium_parts(l5, l4, side, p.crest_level))
+        if got is not None:
+            cv.paint_bone(got[0], got[1], torch.full_like(got[1], 1e3), lab, p)
+    for k, seg in enumerate(sacrum):
+        got = cv.union(S.sacral_parts(seg, k, p.vertebra_scale))
+        if got is None:
+            continue
+        sl, bone, body = got
+        lq, aq, sq = S.local_coords(seg.centre, seg.rot, *cv.coords(sl))
+        bone = torch.maximum(bone, -S.canal_sdf(seg, lq, aq, sq, extra=1.0))
+        cv.paint_bone(sl, bone, body, L.LABEL_IDS["sacrum"], p)
 
     # --- lower ribs (11 and 12) from T12 and the level above
     for side, r11, r12 in ((-1.0, 102, 103), (1.0, 114, 115)):
         a_c = t12.canal_a
-        cw = t12.dims[3]
+        cw = t12.dims.canal_half_width
         p0 = t12.to_world((side * (cw + 10), a_c - 2, 3.0))
         p1 = t12.to_world((side * 45, a_c - 8, -20.0))
         p2 = t12.to_world((side * 85, a_c + 15, -45.0))
@@ -594,16 +589,11 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
             (r11, (q0, q1), 5.0),
             (r11, (q1, q2), 5.0),
         ):
-            a, b = seg
-            sl = cv.box(np.minimum(a, b) - r, np.maximum(a, b) + r)
-            if sl is None:
-                continue
-            x, y, z = cv.coords(sl)
-            d = capsule(x, y, z, tuple(a), tuple(b), r)
-            hu = p.cancellous_hu + (p.cortical_hu - p.cancellous_hu) * (
-                (d + 1.5) / cv.h + 0.5
-            ).clamp(0, 1)
-            cv.paint(sl, d, lab, hu)
+            got = cv.union([S._capsule_part(seg[0], seg[1], r)])
+            if got is not None:
+                cv.paint_bone(got[0], got[1], torch.full_like(got[1], 1e3), lab, p)
+
+    _cover_bone(cv)
 
     # --- CT noise, integer HU (so the int16 NIfTI round trip is exact)
     gen = torch.Generator().manual_seed(int(seed))
@@ -618,7 +608,7 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
         "generator_version": GENERATOR_VERSION,
         "params": dataclasses.asdict(p),
         "vertebrae": {
-            v.level: {"centre_m": (v.centre * 1e-3).tolist(), "rotation": v.rot.tolist()}
+            v.level: {"centre_m": (S.body_centroid(v) * 1e-3).tolist(), "rotation": v.rot.tolist()}
             for v in verts
         },
     }

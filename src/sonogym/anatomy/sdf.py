@@ -64,3 +64,38 @@ def smooth_union(a: Tensor, b: Tensor, k: float) -> Tensor:
     """Union that blends the two shapes over a fillet of size k (mm)."""
     h = (k - (a - b).abs()).clamp_min(0) / k
     return torch.minimum(a, b) - h * h * k / 4
+
+
+def smooth_subtract(a: Tensor, b: Tensor, k: float) -> Tensor:
+    """``a`` with ``b`` carved out, the cut edge blended over a fillet of size k (mm)."""
+    return -smooth_union(-a, b, k)
+
+
+def round_box(
+    u: Tensor, v: Tensor, w: Tensor, half: tuple[float, float, float], r: float = 0.0
+) -> Tensor:
+    """Box with half-sizes ``half`` centred at the origin of (u, v, w), edges rounded by r
+    (the rounding stays inside the half-sizes)."""
+    qu = u.abs() - (half[0] - r)
+    qv = v.abs() - (half[1] - r)
+    qw = w.abs() - (half[2] - r)
+    outside = torch.sqrt(qu.clamp_min(0) ** 2 + qv.clamp_min(0) ** 2 + qw.clamp_min(0) ** 2)
+    return outside + torch.maximum(torch.maximum(qu, qv), qw).clamp_max(0) - r
+
+
+def polygon2(u: Tensor, v: Tensor, pts: list[tuple[float, float]]) -> Tensor:
+    """Exact signed distance to a simple polygon with vertices ``pts`` (either winding)."""
+    n = len(pts)
+    d2 = None
+    inside = torch.zeros_like(u, dtype=torch.bool)
+    for i in range(n):
+        a, b = pts[i], pts[i - 1]
+        seg = segment2(u, v, a, b) ** 2
+        d2 = seg if d2 is None else torch.minimum(d2, seg)
+        # even-odd rule: does the horizontal ray from (u, v) cross edge a-b?
+        if a[1] != b[1]:
+            crosses = (v >= min(a[1], b[1])) & (v < max(a[1], b[1]))
+            x_at = a[0] + (v - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+            inside ^= crosses & (u < x_at)
+    d = torch.sqrt(d2)
+    return torch.where(inside, -d, d)

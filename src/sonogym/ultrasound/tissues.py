@@ -1,9 +1,9 @@
 """Label -> tissue tables and the two presets' acoustic parameters, as documented data.
 
 Every label id the patient model uses (``sonogym.anatomy.labels``: background 0, TotalSegmentator
-v2 ids 1-117, project ids 118-122) maps to one tissue in each preset; ``GEL`` (255) is a pseudo
+v2 ids 1-117, project ids 118-124) maps to one tissue in each preset; ``GEL`` (255) is a pseudo
 label the simulator gives to air in the first millimetres under the probe face (coupling gel).
-Ids the tables do not list (123-254) image as generic soft tissue.
+Ids the tables do not list (125-254) image as generic soft tissue.
 
 ``sonogym`` preset (reference_implementation.md §1.2-§1.3): the reference's ImFusion-style tissue
 ids with its parameters copied exactly, and the *intended* TotalSegmentator -> tissue mapping of
@@ -13,7 +13,9 @@ reference's units: energy decays as exp(-0.02 * sum(alpha - beta) * dz / mm) (0.
 pixel). Project ids: skin, subcutaneous fat and body_trunc -> 12 (soft tissue, as the reference's
 body label 120); intervertebral discs -> 12 (the reference has no disc label: discs sit inside
 its body label); spinal canal -> 10 (the reference's spinal-cord tissue, which is what
-TotalSegmentator's spinal_cord mask covers in the lumbar canal).
+TotalSegmentator's spinal_cord mask covers in the lumbar canal); spinal ligaments and the
+thoracolumbar fascia -> 12 (the reference has no ligament tissue; their echo comes from their CT
+contrast with fat and muscle, which the preset's CT-based reflection sees).
 
 ``physical`` preset (ultrasound_physics.md §1): literature impedance (MRayl) and attenuation
 (dB/cm/MHz); scattering mu0 / mu1 / sigma0 with the paper's meaning (scatterer amplitude
@@ -109,6 +111,7 @@ SONOGYM_LABEL_TISSUE: dict[int, int] = _ranges(
     ([118, 119, 120], 12),  # skin, subcutaneous fat, body_trunc
     (121, 12),  # intervertebral discs (inside the reference's body label)
     (122, 10),  # spinal canal
+    ([123, 124], 12),  # spinal ligaments, thoracolumbar fascia (no ligament tissue there)
     (GEL, 4),  # coupling gel: water
 )
 SONOGYM_DEFAULT_TISSUE = 12
@@ -139,6 +142,10 @@ PHYSICAL_TISSUES: dict[str, Tissue] = {
     # cortical bone: Z 6.1-7.8 [S]/[B] (6.5 at 1200 HU; CT refinement gives ~7.6 at 1600 HU),
     # alpha 1-20 [S]/[D] -> 10; strongly scattering (shadowed anyway)
     "bone": Tissue(alpha=10.0, impedance=6.5, mu0=0.8, mu1=2.0, sigma0=0.2, hu=1200.0),
+    # dense fibrous tissue (spinal ligaments, thoracolumbar fascia): brighter than muscle, its
+    # collagen fibres scatter strongly [R]; Z 1.70 (tendon-like) and alpha 2 (tendon ~1.5-4)
+    # [R], hu 75 (phantom's ligament CT)
+    "ligament": Tissue(alpha=2.0, impedance=1.70, mu0=0.75, mu1=2.0, sigma0=0.1, hu=75.0),
     # cartilage (costal cartilage, intervertebral disc): Z ~1.7 [C], alpha ~1.5 [R]
     "cartilage": Tissue(alpha=1.5, impedance=1.7, mu0=0.3, mu1=2.0, sigma0=0.05, hu=90.0),
     # spinal cord / nerve: soft-tissue-like, hypoechoic [R]
@@ -176,6 +183,7 @@ PHYSICAL_LABEL_TISSUE: dict[int, str] = _ranges(
     (120, "soft_tissue"),  # body_trunc
     (121, "cartilage"),  # intervertebral discs
     (122, "fluid"),  # spinal canal: CSF around the cauda equina
+    ([123, 124], "ligament"),  # spinal ligaments, thoracolumbar fascia
     (GEL, "gel"),
 )
 PHYSICAL_DEFAULT_TISSUE = "soft_tissue"

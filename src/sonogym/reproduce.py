@@ -113,7 +113,7 @@ _RECIPES = (
             *_surgery_state(1),
             *_surgery_state(2),
             "sonogym train --task surgery --algo ppo-sf --obs-downsample 2 --steps 51968 --seed 0 "
-            "--out runs/surg-img-w5-s0",
+            "--net small --env-option unsafe_distance_penalty=0 --out runs/surg-img-w5-s0",
             "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50",
             "sonogym eval --run runs/surg-img-w5-s0 --protocol odt-patient --envs 50",
             "sonogym eval --run runs/surg-img-w5-s0 --protocol idt --envs 50 --filter-mode zero "

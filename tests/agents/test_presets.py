@@ -58,17 +58,40 @@ def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
 
     assert SurgeryConfig().w5 == 5.0
     cpu = resolve_train_config("surgery", "ppo", preset="cpu")
-    assert cpu.rl.env_kwargs == get_task("surgery").training.env_kwargs_cpu == {"w5": 50.0}
+    recipe = {"w5": 50.0, "unsafe_distance_penalty": 100.0}
+    assert cpu.rl.env_kwargs == get_task("surgery").training.env_kwargs_cpu == recipe
     assert resolve_train_config("surgery", "ppo", preset="paper").rl.env_kwargs == {}
     given = resolve_train_config(
         "surgery", "ppo", preset="cpu", env_kwargs={"w5": 5.0, "obs_mode": "state"}
     )
-    assert given.rl.env_kwargs == {"w5": 5.0, "obs_mode": "state"}
+    assert given.rl.env_kwargs == {"w5": 5.0, "unsafe_distance_penalty": 100.0, "obs_mode": "state"}
     nav = resolve_train_config("navigation", "ppo", preset="cpu")
-    assert nav.rl.env_kwargs == {"imaging_randomization": True}  # navigation's CPU option
+    assert nav.rl.env_kwargs == {}
     assert resolve_train_config("reconstruction", "ppo", preset="cpu").rl.env_kwargs == {}
     back = TrainConfig.from_dict(json.loads(json.dumps(cpu.to_dict())))
-    assert back.rl.env_kwargs == {"w5": 50.0}  # config.json records it for eval and resume
+    assert back.rl.env_kwargs == recipe  # config.json records it for eval and resume
+
+
+@pytest.mark.parametrize(
+    "task, obs_mode, published",
+    [  # the explicit flags of docs/results.md's runs (sonogym.reproduce recipes)
+        ("surgery", "state", dict(net="lean", steps=120_000,
+                                  env_kwargs={"unsafe_distance_penalty": 100})),
+        ("navigation", None, dict(envs=64, net="small", steps=9024, obs_downsample=4)),
+        ("reconstruction", None, dict(envs=64, net="small", steps=4000)),
+    ],
+)  # fmt: skip
+def test_the_cpu_preset_alone_trains_the_published_recipe(task, obs_mode, published):
+    obs = {"obs_mode": obs_mode} if obs_mode else {}
+    default = resolve_train_config(task, "ppo", preset="cpu", env_kwargs=obs, seed=1)
+    env_kwargs = {**published.pop("env_kwargs", {}), **obs}
+    explicit = resolve_train_config(
+        task, "ppo", preset="cpu", env_kwargs=env_kwargs, seed=1, **published
+    )
+    assert default.to_dict() == explicit.to_dict()
+    paper = resolve_train_config(task, "ppo", preset="paper", env_kwargs=obs, seed=1)
+    assert paper.rl.timesteps == get_task(task).training.timesteps  # the paper's own
+    assert paper.rl.env_kwargs == obs
 
 
 @pytest.mark.parametrize("preset", ["cpu", "paper"])

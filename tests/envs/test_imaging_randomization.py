@@ -40,8 +40,8 @@ def test_same_seed_same_images_and_the_starts_do_not_move():
     assert env_off.scene.imaging_settings is None
 
 
-def test_on_in_navigations_cpu_preset_only_and_off_in_evaluation(monkeypatch):
-    assert task_config("navigation", "cpu").env_kwargs == {"imaging_randomization": True}
+def test_off_unless_asked_for_and_always_off_in_evaluation(monkeypatch):
+    assert "imaging_randomization" not in task_config("navigation", "cpu").env_kwargs
     assert "imaging_randomization" not in task_config("navigation", "paper").env_kwargs
     import sonogym.envs.registry as registry
     from sonogym.evaluation import rl_eval

@@ -75,14 +75,14 @@ class TaskRLConfig:
 def task_config(task: str, preset: str = "paper", **overrides) -> TaskRLConfig:
     """The task's registry defaults as a ``TaskRLConfig``, with fields replaced
     (``dataclasses.replace`` semantics); an unknown task names the known ones. ``preset``
-    "cpu" takes the task's CPU PPO table where it has one (``TrainingDefaults.ppo_cpu``) and its
-    CPU env options (``TrainingDefaults.env_kwargs_cpu``)."""
+    "cpu" takes the task's CPU recipe where it has one (``TrainingDefaults.ppo_cpu``,
+    ``env_kwargs_cpu``, ``timesteps_cpu``; ``net_cpu`` is applied by ``resolve_train_config``)."""
     t = get_task(task).training
     base = TaskRLConfig(
         task=task,
         ppo=t.ppo_cpu if (preset == "cpu" and t.ppo_cpu is not None) else t.ppo,
         a2c=t.a2c,
-        timesteps=t.timesteps,
+        timesteps=t.timesteps_cpu if (preset == "cpu" and t.timesteps_cpu) else t.timesteps,
         num_envs=t.num_envs,
         learning=t.learning,
         safety=t.safety or SafetyParams(),
@@ -242,7 +242,7 @@ def resolve_train_config(
         task,
         p.name,
         num_envs=p.num_envs,
-        net=p.net,
+        net=defaults.net_cpu if (p.name == "cpu" and defaults.net_cpu) else p.net,
         obs_downsample=p.obs_downsample(defaults.image_height),
     )
     given = {"num_envs": envs, "timesteps": steps, "net": net, "obs_downsample": obs_downsample}

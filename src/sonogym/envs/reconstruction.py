@@ -623,5 +623,6 @@ SPEC = TaskSpec(
         a2c=A2CParams(rollouts=64, mini_batches=32),
         timesteps=500_000,
         trunks={"paper": CONV3, "small": SMALL_CONV3},
+        timesteps_cpu=4_000,  # docs/results.md's submodular PPO: 4,000 steps x 64 envs
     ),
 )

@@ -250,10 +250,13 @@ class TrainingDefaults:
     num_envs: int = 128  # paper
     image_height: int | None = None  # px of the image observation (presets pool it), None: none
     learning: LearningParams = field(default_factory=LearningParams)
-    ppo_cpu: PPOParams | None = None  # the table the ``cpu`` preset trains with, if different
-    # env options the ``cpu`` preset trains with, where the paper's own do not train on a CPU
-    # budget (documented deviations; the env's defaults stay the paper's, and so does ``paper``)
-    env_kwargs_cpu: dict[str, Any] = field(default_factory=dict)
+    # The ``cpu`` preset's recipe: what trains best on a CPU budget where the paper's settings
+    # do not (documented deviations; the env's defaults stay the paper's, and so does the
+    # ``paper`` preset). ``sonogym train --task T`` on a CPU trains with these.
+    ppo_cpu: PPOParams | None = None  # the PPO table, if different
+    env_kwargs_cpu: dict[str, Any] = field(default_factory=dict)  # env options
+    net_cpu: str | None = None  # network size (None: the preset's, "small")
+    timesteps_cpu: int | None = None  # env steps per env (None: ``timesteps``)
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
     safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
 

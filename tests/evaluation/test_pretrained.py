@@ -98,11 +98,21 @@ def test_demo_runs_a_shipped_policy_beside_the_expert(tiny_run, tmp_path, monkey
     from sonogym.envs.registry import make_vec
     from sonogym.evaluation import demo
 
-    P.export_pretrained(tiny_run, "nav-test", root=tmp_path / "shipped")
+    dest = P.export_pretrained(tiny_run, "nav-test", root=tmp_path / "shipped")
+    cfg = json.loads((dest / "config.json").read_text())
+    cfg["task_config"]["env_kwargs"]["patients"] = [7, 8]  # trained on another cohort
+    (dest / "config.json").write_text(json.dumps(cfg))
     monkeypatch.setattr(P, "PRETRAINED_DIR", tmp_path / "shipped")
     small = {"phantom_spacing": 0.002, "episode_length": 20}
-    monkeypatch.setattr(demo, "make_vec", lambda t, n, **kw: make_vec(t, n, **{**small, **kw}))
+    built = []
+
+    def small_env(t, n, **kw):
+        built.append(kw.get("patients"))
+        return make_vec(t, n, **{**small, **kw})
+
+    monkeypatch.setattr(demo, "make_vec", small_env)
     results = demo.run_demo(tmp_path / "demo", num_envs=2, tasks=("navigation",), log=print)
+    assert built == [None, (0,)]  # the shipped policy runs on the expert's phantom 0
     assert set(results) == {"navigation", "navigation_pretrained-nav-test"}
     shipped = results["navigation_pretrained-nav-test"]
     assert shipped["controller"] == "pretrained nav-test"

@@ -50,7 +50,8 @@ def run_demo(
             run = load_run(shipped.pretrained_dir(policy_name))
             if run.task != name:
                 continue
-            kw = {**run.env_kwargs, **over, "imaging_randomization": False}
+            # on the expert's patients (not the policy's training cohort), as evaluation images
+            kw = {**run.env_kwargs, "patients": env.cfg.patients, "imaging_randomization": False}
             penv = make_vec(name, num_envs, **kw)
             policy = run_policy(run, penv, shipped.weights(policy_name))
             runs.append((f"{name}_pretrained-{policy_name}", f"pretrained {policy_name}", penv,

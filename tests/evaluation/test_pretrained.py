@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -122,3 +123,21 @@ def test_demo_runs_a_shipped_policy_beside_the_expert(tiny_run, tmp_path, monkey
         "| navigation | pretrained nav-test | position_error_mm |"
         in (tmp_path / "demo" / "metrics.md").read_text()
     )
+
+
+def test_the_shipped_navigation_policy_loads_weights_only_and_acts():
+    from sonogym.agents.checkpoint import ACTING_MODULES, load_policy, read_checkpoint
+
+    assert "navigation" in P.available()
+    weights = read_checkpoint(P.weights("navigation"))  # safetensors: tensors, nothing unpickled
+    assert set(weights) <= set(ACTING_MODULES) and "policy" in weights
+    model, cfg = load_policy(P.pretrained_dir("navigation"), P.weights("navigation"))
+    assert cfg["task"] == "navigation"
+    width = sum(int(np.prod(s)) for s in cfg["obs_layout"]["shapes"])
+    obs = torch.rand(3, width, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        act = model.act({"observations": obs}, role="policy")[1]["mean_actions"]
+    assert act.shape == (3, len(cfg["action_space"]["low"])) and torch.isfinite(act).all()
+    card = P.read_card("navigation")
+    assert card["training_patients"] == list(range(100, 132))  # phantoms only
+    assert {"odt-patient", "real-subject"} <= set(card["evaluations"])

@@ -180,9 +180,10 @@ def test_cli_train_and_refusal(tmp_path):
     assert json.loads((out / "config.json").read_text())["task_config"]["env_kwargs"] == {
         "patients": [0],
         "phantom_spacing": 0.002,
-        # --env-option overrides the cpu preset's w5 = 50 and adds its own; recorded for eval
-        # and resume
+        # --env-option overrides the cpu preset's w5 = 50 and adds its own beside the preset's
+        # distance penalty; recorded for eval and resume
         "w5": 20,
+        "unsafe_distance_penalty": 100.0,
         "unsafe_penalty": 0.5,
     }
 

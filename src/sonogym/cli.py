@@ -597,7 +597,7 @@ def eval_(
     and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
     from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
-    from sonogym.evaluation.rl_eval import evaluate_run, format_table
+    from sonogym.evaluation.rl_eval import evaluate_run, format_table, table_stem
 
     if (run is None) == (pretrained is None):
         raise typer.BadParameter("give --run RUN or --pretrained NAME (one of them)")
@@ -633,7 +633,7 @@ def eval_(
     except (FileNotFoundError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
     log = name or protocol or "custom"
-    stem = "eval" if log == "idt" else f"eval-{log}"
+    stem = table_stem(log)
     table = Path(out or run) / f"{stem}.md"
     typer.echo(table.read_text() if table.is_file() else format_table(results), nl=False)
     typer.echo(

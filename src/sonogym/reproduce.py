@@ -285,9 +285,10 @@ def _out(step: Step) -> Path:
 
 
 def _eval_table(step: Step) -> Path:
+    from sonogym.evaluation.rl_eval import table_stem
+
     name = step.option("--name") or step.option("--protocol", "idt")
-    stem = "eval" if name == "idt" else f"eval-{name}"
-    return Path(step.option("--out") or step.option("--run") or ".") / f"{stem}.json"
+    return _out(step) / f"{table_stem(name)}.json"
 
 
 def _records(path: Path) -> int:

@@ -40,6 +40,12 @@ DEFAULT_ENVS = 16
 UNFILTERED = "unfiltered"
 
 
+def table_stem(name: str) -> str:
+    """The file stem of evaluation ``name``'s table: ``eval`` for ``idt``, else
+    ``eval-<name>``."""
+    return "eval" if name == "idt" else f"eval-{name}"
+
+
 def evaluate_run(
     run: str | Path,
     trials: int | None = None,
@@ -146,7 +152,7 @@ def evaluate_run(
     )
     if plot:
         plot_trajectories(load_log(log), dest / f"trajectories-{name}.png")
-    stem = "eval" if name == "idt" else f"eval-{name}"
+    stem = table_stem(name)
     table = {
         "task": trained.task,
         "trials": trials,

@@ -292,10 +292,16 @@ def _eval_table(step: Step) -> Path:
 
 
 def _records(path: Path) -> int:
+    """Episodes the dataset at ``path`` has committed (0: none, or no dataset yet); read
+    leniently: ``record --resume`` checks the dataset itself."""
     try:
         return int(json.loads((path / "meta" / "info.json").read_text())["total_episodes"])
     except (OSError, ValueError, KeyError, TypeError):
         return 0
+
+
+#: The file a command writes last, whose presence means it finished.
+_FINAL_FILE = {"report": "report.md", "plot": "curves.md", "sweep": "sweep.md"}
 
 
 def status(step: Step) -> str:
@@ -303,12 +309,8 @@ def status(step: Step) -> str:
     cmd, out = step.argv[0], _out(step)
     if cmd == "eval":
         return "done" if _eval_table(step).is_file() else "todo"
-    if cmd in ("report",):
-        return "done" if (out / "report.md").is_file() else "todo"
-    if cmd == "plot":
-        return "done" if (out / "curves.md").is_file() else "todo"
-    if cmd == "sweep":
-        return "done" if (out / "sweep.md").is_file() else "todo"
+    if cmd in _FINAL_FILE:
+        return "done" if (out / _FINAL_FILE[cmd]).is_file() else "todo"
     if cmd == "record":
         n = _records(out)
         if n >= int(step.option("--episodes", "0") or 0) > 0:

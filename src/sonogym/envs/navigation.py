@@ -51,8 +51,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
-from sonogym.envs.footprint import check_env_fits
+from sonogym.envs.base import SingleEnv
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
@@ -70,6 +69,7 @@ from sonogym.envs.spec import (
     Track,
     TrainingDefaults,
 )
+from sonogym.envs.task_env import TaskEnv
 from sonogym.geometry import relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
 
@@ -130,16 +130,14 @@ def navigation_expert(
     return (gain * err / scale).clamp(-action_bound, action_bound).float()
 
 
-class NavigationEnv(TorchVectorEnv):
+class NavigationEnv(TaskEnv):
     """``SonoGym/Navigation-v0`` as a batched env; see the module docstring."""
 
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
-        cfg = make_config(NavigationConfig, kwargs)
-        super().__init__(num_envs, cfg.device, cfg.episode_length)
-        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
-        self.cfg = cfg
+        super().__init__(num_envs, SPEC, kwargs)
+        cfg = self.cfg
         # navigation reads the volumes only through the slicer: patients load one at a time
-        self.scene = ProbeScene.from_config(
+        self.scene = ProbeScene(
             cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False
         )
         n = num_envs

@@ -22,42 +22,33 @@ MAX_YAW_LEAD = 0.5
 class ProbeScene(PatientScene):
     """Probe arm + patients + imaging for N envs.
 
-    Args (besides ``PatientScene``'s):
-        robot: arm model name ("kuka_med14", "franka_fr3") or None for an ideal probe.
+    Args:
+        cfg: a probe task's config: ``PatientScene``'s fields plus ``robot`` (arm model name,
+            "kuka_med14" or "franka_fr3", or None for an ideal probe), ``crop_to_reach`` and
+            ``workspace_half_extent`` (with ``crop_to_reach``, images slice only what a probe
+            within ``workspace_half_extent`` of the target, tilted up to ``tilt_limit`` (when
+            the task has one) + ``ARM_TILT_MARGIN``, can image).
+        num_envs, device, keep_volumes: see ``PatientScene``.
         render: build the slicer and simulator now (else on first ``observe``).
         probe: the imaging geometry (default: the paper's 2-D linear probe).
     """
 
     def __init__(
         self,
-        patients,
+        cfg,
         num_envs: int,
-        spacing: float,
-        simulator: str,
-        robot: str | None,
-        target_vertebra: str,
         device: torch.device,
         render: bool = True,
-        probe: ProbeGeometry | None = None,
-        learned_nets=(0, 1, 2, 3, 4),
-        learned_precision: str = "float32",
-        reach: ImagingReach | None = None,
         keep_volumes: bool = True,
+        probe: ProbeGeometry | None = None,
     ) -> None:
-        super().__init__(
-            patients,
-            num_envs,
-            spacing,
-            simulator,
-            learned_nets,
-            target_vertebra,
-            device,
-            probe or ProbeGeometry.linear_2d(),
-            learned_precision=learned_precision,
-            reach=reach,
-            keep_volumes=keep_volumes,
-        )
-        self.robot = robot
+        reach = None
+        if cfg.crop_to_reach:
+            tilt = getattr(cfg, "tilt_limit", 0.0) + ARM_TILT_MARGIN
+            reach = ImagingReach(cfg.workspace_half_extent, tilt)
+        probe = probe or ProbeGeometry.linear_2d()
+        super().__init__(cfg, num_envs, device, probe, reach=reach, keep_volumes=keep_volumes)
+        self.robot = robot = cfg.robot
         self.reachable = torch.ones(num_envs, dtype=torch.bool, device=device)
         self._cmd = torch.zeros(num_envs, 4, device=device)  # last command (x, z, yaw, tilt)
         self._measured = None  # ((probe_pos, probe_rot), their versions, measured command)
@@ -65,34 +56,6 @@ class ProbeScene(PatientScene):
             self._init_robot(robot)
         if render:
             self.build_imaging()
-
-    @classmethod
-    def from_config(
-        cls, cfg, num_envs: int, device: torch.device, render: bool, keep_volumes: bool = True
-    ) -> ProbeScene:
-        """The scene of a probe task's config (its ``patients``, ``phantom_spacing``,
-        ``simulator``, ``learned_nets``, ``robot`` and ``target_vertebra`` fields; with
-        ``crop_to_reach``, images slice only what a probe within ``workspace_half_extent``
-        of the target, tilted up to ``tilt_limit`` (+ ``ARM_TILT_MARGIN``), can image).
-        ``keep_volumes``: see ``PatientScene``."""
-        reach = None
-        if cfg.crop_to_reach:
-            tilt = getattr(cfg, "tilt_limit", 0.0) + ARM_TILT_MARGIN
-            reach = ImagingReach(cfg.workspace_half_extent, tilt)
-        return cls(
-            cfg.patients,
-            num_envs,
-            spacing=cfg.phantom_spacing,
-            simulator=cfg.simulator,
-            learned_nets=cfg.learned_nets,
-            learned_precision=cfg.learned_precision,
-            robot=cfg.robot,
-            target_vertebra=cfg.target_vertebra,
-            device=device,
-            render=render,
-            reach=reach,
-            keep_volumes=keep_volumes,
-        )
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -164,8 +127,8 @@ class ProbeScene(PatientScene):
 
     def _store(self, ids, res) -> None:
         self.q[ids] = res.q.to(self.q.dtype)
-        self.probe_pos[ids] = res.probe_pos.float()
-        self.probe_rot[ids] = res.probe_rot.float()
+        self.probe_pos[ids] = res.pos.float()
+        self.probe_rot[ids] = res.rot.float()
         self.reachable[ids] = res.reachable
 
     def measured_command(self, sl=slice(None)):

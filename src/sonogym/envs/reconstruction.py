@@ -92,8 +92,7 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
-from sonogym.envs.footprint import check_env_fits
+from sonogym.envs.base import SingleEnv
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
@@ -108,6 +107,7 @@ from sonogym.envs.spec import (
     Track,
     TrainingDefaults,
 )
+from sonogym.envs.task_env import TaskEnv
 from sonogym.geometry import normalize, relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
 from sonogym.ultrasound.surface_sensor import BoneSurfaceSensor
@@ -146,6 +146,10 @@ class ReconstructionConfig(SceneConfig):
         super().__post_init__()
         if not 0.0 <= self.missing_rate <= 1.0:
             raise ValueError(f"missing_rate must be in [0, 1], got {self.missing_rate}")
+        if self.target_vertebra not in VERTEBRA_IDS:
+            raise ValueError(
+                f"target_vertebra {self.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
+            )
 
     @property
     def cube_half_extent(self) -> float:
@@ -234,19 +238,13 @@ def target_box_centre(patient: Patient, target: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------- env
 
 
-class ReconstructionEnv(TorchVectorEnv):
+class ReconstructionEnv(TaskEnv):
     """``SonoGym/Reconstruction-v0`` as a batched env; see the module docstring."""
 
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
-        cfg = make_config(ReconstructionConfig, kwargs)
-        if cfg.target_vertebra not in VERTEBRA_IDS:
-            raise ValueError(
-                f"target_vertebra {cfg.target_vertebra!r} is not one of {sorted(VERTEBRA_IDS)}"
-            )
-        super().__init__(num_envs, cfg.device, cfg.episode_length)
-        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
-        self.cfg = cfg
-        self.scene = ProbeScene.from_config(cfg, num_envs, self.device, render=False)
+        super().__init__(num_envs, SPEC, kwargs)
+        cfg = self.cfg
+        self.scene = ProbeScene(cfg, num_envs, self.device, render=False)
         dev, n, size = self.device, num_envs, cfg.volume_size
         pats = self.scene.patients
         pid = self.scene.patient_index

@@ -20,6 +20,7 @@ import torch
 from sonogym.anatomy import Patient, SkinSurface
 from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator
 from sonogym.envs.patients import resolve_patients
+from sonogym.envs.scene_config import SceneConfig
 from sonogym.memory import return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
 from sonogym.ultrasound import randomization as imaging_rand
@@ -88,18 +89,16 @@ class PatientScene:
     """Patients + imaging for N envs (see the module docstring).
 
     Args:
-        patients: phantom seeds and/or TotalSegmentator folders.
+        cfg: the task's ``SceneConfig`` (``patients``, ``phantom_spacing``, ``simulator``,
+            ``learned_nets``, ``learned_precision``, ``target_vertebra``): ``simulator`` is
+            "physical" or "sonogym" (model-based) or "learned"; with "learned" each env uses
+            ``nets.index`` into ``learned_nets``, redrawn by ``draw_nets`` at its resets;
+            ``target_vertebra``'s body centroid anchors goals and arm placement.
         num_envs: N.
-        spacing: voxel size (m) of phantoms / resampled folders.
-        simulator: "physical" or "sonogym" (model-based presets) or "learned".
-        learned_nets: nets of ``simulator="learned"`` (ints: shipped nets, str: weight files);
-            each env uses ``nets.index`` into them, redrawn by ``draw_nets`` at its resets.
-        target_vertebra: the vertebra whose body centroid anchors goals and arm placement.
         device: torch device of everything.
         probe: the imaging geometry.
-        gel_depth: m, coupling gel under the probe face, overriding the model-based preset's
-            (None keeps the preset's).
-        learned_precision: working precision of the learned nets ("float32", "bfloat16").
+        gel_depth: m, coupling gel under the probe face, overriding the model-based
+            simulator's (None keeps its own).
         reach: where the task's probe can be; the slicer then keeps only what it can image
             (``imaging_reach_boxes``); None keeps the whole volumes.
         keep_volumes: True: load every patient whole first (for tasks that read the volumes
@@ -112,19 +111,17 @@ class PatientScene:
 
     def __init__(
         self,
-        patients,
+        cfg: SceneConfig,
         num_envs: int,
-        spacing: float,
-        simulator: str,
-        learned_nets,
-        target_vertebra: str,
         device: torch.device,
         probe: ProbeGeometry,
         gel_depth: float | None = None,
-        learned_precision: str = "float32",
         reach: ImagingReach | None = None,
         keep_volumes: bool = True,
     ) -> None:
+        patients, spacing, simulator = cfg.patients, cfg.phantom_spacing, cfg.simulator
+        learned_nets, learned_precision = cfg.learned_nets, cfg.learned_precision
+        target_vertebra = cfg.target_vertebra
         check_simulator(simulator, learned_nets, learned_precision)
         self.reach = reach
         self.learned_precision = learned_precision

@@ -116,8 +116,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs import frames
-from sonogym.envs.base import SingleEnv, TorchVectorEnv, make_config
-from sonogym.envs.footprint import check_env_fits
+from sonogym.envs.base import SingleEnv
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     CONV3,
@@ -137,6 +136,7 @@ from sonogym.envs.spec import (
     TrainingDefaults,
 )
 from sonogym.envs.surgery_scene import SIDES, Side, SurgeryScene
+from sonogym.envs.task_env import TaskEnv
 from sonogym.geometry import (
     axis_angle_from_matrix,
     in_frame,
@@ -386,35 +386,13 @@ def surgery_expert(
 # ----------------------------------------------------------------------------- the env
 
 
-class SurgeryEnv(TorchVectorEnv):
+class SurgeryEnv(TaskEnv):
     """``SonoGym/Surgery-v0`` as a batched env; see the module docstring."""
 
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
-        cfg = make_config(SurgeryConfig, kwargs)
-        super().__init__(num_envs, cfg.device, cfg.episode_length)
-        check_env_fits(SPEC.name, SPEC.memory, num_envs, cfg)  # before any patient loads
-        self.cfg = cfg
-        self.scene = SurgeryScene(
-            cfg.patients,
-            num_envs,
-            spacing=cfg.phantom_spacing,
-            simulator=cfg.simulator,
-            learned_nets=cfg.learned_nets,
-            learned_precision=cfg.learned_precision,
-            side=cfg.side,
-            target_vertebra=cfg.target_vertebra,
-            device=self.device,
-            skin_distance=cfg.skin_distance,
-            start_height=cfg.start_height,
-            probe_offset=cfg.probe_offset,
-            probe_tilt=cfg.probe_tilt,
-            probe_yaw=cfg.probe_yaw,
-            probe_settle_steps=cfg.probe_settle_steps,
-            gel_depth=cfg.gel_depth,
-            render=cfg.obs_mode != "state",
-            crop_to_reach=cfg.crop_to_reach,
-            probe_offset_noise=cfg.probe_offset_noise,
-        )
+        super().__init__(num_envs, SPEC, kwargs)
+        cfg = self.cfg
+        self.scene = SurgeryScene(cfg, num_envs, self.device, render=cfg.obs_mode != "state")
         n, dev = num_envs, self.device
         f32 = dict(dtype=torch.float32, device=dev)
         self.half_width = self.scene.radius + cfg.corridor_margin  # (N,) d/2, m

@@ -32,7 +32,6 @@ from typing import Literal, get_args
 import numpy as np
 import torch
 
-from sonogym.envs.imaging import DEFAULT_LEARNED_NETS
 from sonogym.envs.scene import ARM_TILT_MARGIN, ImagingReach, PatientScene
 from sonogym.geometry import in_frame, matrix_from_axis_angle, normalize
 from sonogym.ultrasound import ProbeGeometry
@@ -75,74 +74,42 @@ class SurgeryScene(PatientScene):
     """Patients, goal frames, the probe arm, the drill arm and 3-D imaging for N envs.
 
     Args:
-        patients: phantom seeds and/or TotalSegmentator folders.
+        cfg: the surgery config: ``PatientScene``'s fields (with "learned", the 2-D nets are
+            applied slice by slice to the volume's elevation slices) and
+            ``side``: "right" or "left", the drilled pedicle (the patient's side), of
+            ``target_vertebra``;
+            ``skin_distance``: l, distance (m) of p_l before the target along the trajectory;
+            ``start_height``: m, nominal drill-tip start above p_l along the trajectory;
+            ``probe_offset`` (+- ``probe_offset_noise``): m, probe distance from the
+            vertebra's midline (opposite side);
+            ``probe_tilt``: rad, image-plane tilt toward the midline;
+            ``probe_yaw``: rad, yaw of the probe's lateral axis x_U (pi/2: along the spine);
+            ``probe_settle_steps``: control steps of the probe arm's settle at a reset;
+            ``gel_depth``: m, coupling gel under the probe face (overrides the model-based
+            simulator's): tilted by ``probe_tilt``, the face's elevation edges stand off the
+            skin (20 mm * sin 0.4 = 8 mm), and gel fills that wedge. None keeps its own;
+            ``crop_to_reach``: images slice only what the still probe can image.
         num_envs: N.
-        spacing: voxel size (m) of phantoms / resampled folders.
-        simulator: "physical" or "sonogym" (model-based presets) or "learned" (the 2-D nets
-            applied slice by slice to the volume's elevation slices).
-        side: "right" or "left": the drilled pedicle (the patient's side).
-        target_vertebra: the drilled vertebra.
         device: torch device of everything.
-        skin_distance: l, distance (m) of p_l before the target along the trajectory.
-        start_height: m, nominal drill-tip start above p_l along the trajectory.
-        probe_offset: m, probe distance from the vertebra's midline (opposite side).
-        probe_tilt: rad, image-plane tilt toward the midline.
-        probe_yaw: rad, yaw of the probe's lateral axis x_U (pi/2: along the spine).
-        probe_settle_steps: control steps of the probe arm's settle at a reset.
-        gel_depth: m, coupling gel under the probe face (overrides the simulator preset's):
-            tilted by ``probe_tilt``, the face's elevation edges stand off the skin (20 mm *
-            sin 0.4 = 8 mm), and gel fills that wedge. None keeps the preset's value.
         render: build the slicer and simulator now (else on first ``observe``).
-        learned_nets: nets of ``simulator="learned"`` (see ``ProbeScene``).
     """
 
-    def __init__(
-        self,
-        patients,
-        num_envs: int,
-        spacing: float,
-        simulator: str,
-        side: str,
-        target_vertebra: str,
-        device: torch.device,
-        skin_distance: float = 0.05,
-        start_height: float = 0.09,
-        probe_offset: float = 0.03,
-        probe_tilt: float = 0.4,
-        probe_yaw: float = math.pi / 2,
-        probe_settle_steps: int = 40,
-        gel_depth: float | None = None,
-        render: bool = True,
-        learned_nets=DEFAULT_LEARNED_NETS,
-        learned_precision: str = "float32",
-        crop_to_reach: bool = True,
-        probe_offset_noise: float = 0.005,
-    ) -> None:
+    def __init__(self, cfg, num_envs: int, device: torch.device, render: bool = True) -> None:
         from sonogym.robots import SURGERY_DRILL_BASE, SURGERY_PROBE_BASE
 
-        if side not in SIDES:
-            raise ValueError(f"side {side!r} is not one of {SIDES}")
+        side, target_vertebra = cfg.side, cfg.target_vertebra
+        probe_offset, probe_tilt, probe_yaw = cfg.probe_offset, cfg.probe_tilt, cfg.probe_yaw
+        # the still probe: on the skin probe_offset (+ noise) from the midline, tilted
+        # probe_tilt from the normal, plus the arm's settle
+        reach = ImagingReach(probe_offset + cfg.probe_offset_noise, probe_tilt + ARM_TILT_MARGIN)
         super().__init__(
-            patients,
-            num_envs,
-            spacing,
-            simulator,
-            learned_nets,
-            target_vertebra,
-            device,
-            ProbeGeometry.volume_3d(),
-            gel_depth,
-            learned_precision,
-            # the still probe: on the skin probe_offset (+ noise) from the midline, tilted
-            # probe_tilt from the normal, plus the arm's settle
-            ImagingReach(probe_offset + probe_offset_noise, probe_tilt + ARM_TILT_MARGIN)
-            if crop_to_reach
-            else None,
-        )
+            cfg, num_envs, device, ProbeGeometry.volume_3d(), cfg.gel_depth,
+            reach if cfg.crop_to_reach else None,
+        )  # fmt: skip
         self.side = side
-        self.skin_distance = float(skin_distance)
-        self.start_height = float(start_height)
-        self.probe_settle_steps = int(probe_settle_steps)
+        self.skin_distance = float(cfg.skin_distance)
+        self.start_height = float(cfg.start_height)
+        self.probe_settle_steps = int(cfg.probe_settle_steps)
 
         # ---- per patient: goal frame, corridor radius, vertebra centre, skin anchor
         goal_pos, goal_rot, radius = [], [], []
@@ -301,18 +268,11 @@ class SurgeryScene(PatientScene):
     # ------------------------------------------------------------------ frames
     def tip_in_goal(self, env_ids=slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
         """Drill tip in {G}: position (K, 3) m and rotation R_GD (K, 3, 3)."""
-        return in_frame(
-            self.goal_pos[env_ids],
-            self.goal_rot[env_ids],
-            self.tip_pos[env_ids],
-            self.tip_rot[env_ids],
-        )
+        return self._tip_in(self.goal_pos, self.goal_rot, env_ids)
 
     def tip_in_probe(self, env_ids=slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
         """Drill tip in {U}: position (K, 3) m and rotation R_UD (K, 3, 3)."""
-        return in_frame(
-            self.probe_pos[env_ids],
-            self.probe_rot[env_ids],
-            self.tip_pos[env_ids],
-            self.tip_rot[env_ids],
-        )
+        return self._tip_in(self.probe_pos, self.probe_rot, env_ids)
+
+    def _tip_in(self, frame_pos, frame_rot, ids) -> tuple[torch.Tensor, torch.Tensor]:
+        return in_frame(frame_pos[ids], frame_rot[ids], self.tip_pos[ids], self.tip_rot[ids])

@@ -218,7 +218,7 @@ def test_probe_face_stays_on_the_skin_along_a_sweep(back, request):
         yaw = yaw0 + 0.1 * math.sin(k / 10)
         step = sc.step(q, x, z, yaw, tilt)
         q = step.q
-        assert float(sc.skin_distance(step.probe_pos).abs().max()) <= 1e-3
+        assert float(sc.skin_distance(step.pos).abs().max()) <= 1e-3
         assert float(step.pos_error.max()) <= 1e-3
         assert bool(step.reachable.all())
 
@@ -242,7 +242,7 @@ def test_probe_stays_on_the_skin_at_the_largest_navigation_actions(curved_back):
         step = sc.step(q, x, z, yaw, tilt)
         q = step.q
         lagged |= bool((step.rot_error > 0.05).any())
-        assert float(sc.skin_distance(step.probe_pos).abs().max()) <= 1e-3
+        assert float(sc.skin_distance(step.pos).abs().max()) <= 1e-3
     assert lagged
 
 
@@ -257,10 +257,10 @@ def test_a_jump_lags_then_the_reached_pose_matches_the_command(curved_back):
     assert bool((step.pos_error > 0.01).all()) and bool(step.reachable.all())
     settled = sc.settle(step.q, x1, z1, yaw, tilt, steps=60)
     assert bool(settled.reached.all())
-    mx, mz, myaw, mtilt = sc.skin.command_from_pose(settled.probe_pos, settled.probe_rot)
+    mx, mz, myaw, mtilt = sc.skin.command_from_pose(settled.pos, settled.rot)
     assert torch.allclose(mx, x1, atol=1e-4) and torch.allclose(mz, z1, atol=1e-4)
     assert torch.allclose(myaw, yaw, atol=2e-3) and torch.allclose(mtilt, tilt, atol=2e-3)
-    assert float(sc.skin_distance(settled.probe_pos).abs().max()) <= 1e-4
+    assert float(sc.skin_distance(settled.pos).abs().max()) <= 1e-4
 
 
 def test_unreachable_commands_are_reported(curved_back):
@@ -270,7 +270,7 @@ def test_unreachable_commands_are_reported(curved_back):
     zero = torch.zeros(n)
     result = sc.settle(sc.arm.default_joints(n), zero, zero, zero + 2.5, zero, steps=100)
     assert not bool(result.reachable.any())
-    assert bool(torch.isfinite(result.probe_pos).all()) and bool(torch.isfinite(result.q).all())
+    assert bool(torch.isfinite(result.pos).all()) and bool(torch.isfinite(result.q).all())
 
 
 def test_bad_commands_raise(curved_back):

@@ -25,7 +25,7 @@ from sonogym.robots.placement import (
     BasePlacement,
     reference_base_in_voxel_frame,
 )
-from sonogym.robots.surface_controller import SurfaceController, SurfaceStep
+from sonogym.robots.surface_controller import SurfaceController
 from sonogym.robots.tools import DRILL_TOOL, PROBE_TOOL, ToolConfig
 
 __all__ = [
@@ -45,7 +45,6 @@ __all__ = [
     "BasePlacement",
     "IKResult",
     "SurfaceController",
-    "SurfaceStep",
     "ToolConfig",
     "arm_model",
     "assemble_urdf",

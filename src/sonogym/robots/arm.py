@@ -439,16 +439,8 @@ class Arm:
         w0 = err0[:, :3].norm(dim=-1) + cfg.rotation_weight * err0[:, 3:].norm(dim=-1)
         stalled = (w1 > (1.0 - cfg.stall_ratio) * w0) & ~limited
         beyond = (target_pos_base - self._shoulder).norm(dim=-1) > self.reach
-        pos_p, rot_p = self._apply(base, pos, rot)
-        return IKResult(
-            q=q,
-            pos=pos_p,
-            rot=rot_p,
-            pos_error=pos_err,
-            rot_error=rot_err,
-            reached=reached,
-            unreachable=~reached & (stalled | beyond),
-        )
+        unreachable = ~reached & (stalled | beyond)
+        return IKResult(q, *self._apply(base, pos, rot), pos_err, rot_err, reached, unreachable)
 
     def track(
         self,

@@ -12,34 +12,11 @@ Robots depend on anatomy, never the other way round.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from sonogym.anatomy.surface import SkinSurface
 from sonogym.checks import expect_all
 from sonogym.robots.arm import Arm, IKResult
-
-
-@dataclass
-class SurfaceStep:
-    """One control step of N probe arms (batch-first tensors, {P}, metres and radians).
-
-    Attributes:
-        q: (N, 7) joints after the step.
-        probe_pos, probe_rot: (N, 3), (N, 3, 3) reached probe pose (columns x_U, y_U, z_U).
-        pos_error, rot_error: (N,) distance and angle between reached and commanded poses.
-        reached: (N,) bool, within the arm's IK tolerances.
-        reachable: (N,) bool, False where the arm reports the target unreachable.
-    """
-
-    q: torch.Tensor
-    probe_pos: torch.Tensor
-    probe_rot: torch.Tensor
-    pos_error: torch.Tensor
-    rot_error: torch.Tensor
-    reached: torch.Tensor
-    reachable: torch.Tensor
 
 
 class SurfaceController:
@@ -60,16 +37,9 @@ class SurfaceController:
         self.arm = arm
         self.settle_steps = settle_steps
 
-    def target_pose(
-        self,
-        x: torch.Tensor,
-        z: torch.Tensor,
-        yaw: torch.Tensor,
-        tilt: torch.Tensor | None = None,
-        patient: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Surface command (N,) each, metres / rad -> probe target pos (N, 3), rot (N, 3, 3).
-        ``patient`` (N,) picks each env's skin when the controller holds stacked skins."""
+    def _target_pose(self, x, z, yaw, tilt, patient) -> tuple[torch.Tensor, torch.Tensor]:
+        """Surface command (N,) each, metres / rad -> probe target pos (N, 3), rot (N, 3, 3);
+        see ``step``."""
         n = x.shape[0] if x.dim() == 1 else None
         for name, v in (("x", x), ("z", z), ("yaw", yaw), ("tilt", tilt)):
             if v is None:
@@ -86,18 +56,6 @@ class SurfaceController:
         pos, rot = self.skin.surface_pose(x, z, yaw, tilt, patient=patient)
         return pos.to(dt), rot.to(dt)
 
-    @staticmethod
-    def _wrap(result: IKResult) -> SurfaceStep:
-        return SurfaceStep(
-            q=result.q,
-            probe_pos=result.pos,
-            probe_rot=result.rot,
-            pos_error=result.pos_error,
-            rot_error=result.rot_error,
-            reached=result.reached,
-            reachable=result.reachable,
-        )
-
     def step(
         self,
         q: torch.Tensor,
@@ -107,28 +65,19 @@ class SurfaceController:
         tilt: torch.Tensor | None = None,
         patient: torch.Tensor | None = None,
         env_ids: torch.Tensor | None = None,
-    ) -> SurfaceStep:
-        """One control step of joints q (N, 7) toward the surface command. ``env_ids``: the
-        arms the N rows belong to (None: all; see ``Arm.ik_step``)."""
-        target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
-        return self._wrap(self.arm.ik_step(q, target_pos, target_rot, env_ids))
+        steps: int = 1,
+    ) -> IKResult:
+        """``steps`` control steps of joints q (N, 7) toward the surface command x, z, yaw,
+        tilt ((N,) each, metres / rad); the result's ``pos`` / ``rot`` are the reached probe
+        pose (columns x_U, y_U, z_U). ``patient`` (N,) picks each env's skin when the
+        controller holds stacked skins; ``env_ids``: the arms the N rows belong to (None: all;
+        see ``Arm.ik_step``)."""
+        target_pos, target_rot = self._target_pose(x, z, yaw, tilt, patient)
+        return self.arm.track(q, target_pos, target_rot, steps, env_ids)
 
-    def settle(
-        self,
-        q: torch.Tensor,
-        x: torch.Tensor,
-        z: torch.Tensor,
-        yaw: torch.Tensor,
-        tilt: torch.Tensor | None = None,
-        steps: int | None = None,
-        patient: torch.Tensor | None = None,
-        env_ids: torch.Tensor | None = None,
-    ) -> SurfaceStep:
-        """``steps`` (default ``settle_steps``) control steps toward a fixed surface command
-        (of the arms ``env_ids``; None: all)."""
-        target_pos, target_rot = self.target_pose(x, z, yaw, tilt, patient)
-        result = self.arm.track(q, target_pos, target_rot, steps or self.settle_steps, env_ids)
-        return self._wrap(result)
+    def settle(self, q: torch.Tensor, *command, steps: int | None = None, **kw) -> IKResult:
+        """``step`` with ``steps`` (default ``settle_steps``) steps toward a fixed command."""
+        return self.step(q, *command, steps=steps or self.settle_steps, **kw)
 
     def skin_distance(
         self, probe_pos: torch.Tensor, patient: torch.Tensor | None = None

@@ -45,6 +45,16 @@ class ToolConfig:
     tip_pos: tuple[float, float, float]  # m, in the flange frame
     tip_rotvec: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad, rotation vector
 
+    @classmethod
+    def shipped(
+        cls, name: str, tip_link: str, tip_pos: tuple[float, float, float],
+        tip_rotvec: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> ToolConfig:  # fmt: skip
+        """A tool whose description ships as ``<name>_tool.urdf``: root link
+        ``<name>_mount``, tip ``tip_link`` on the fixed joint ``<tip_link>_joint``."""
+        urdf, mount, joint = f"{name}_tool.urdf", f"{name}_mount", f"{tip_link}_joint"
+        return cls(urdf, mount, tip_link, joint, tip_pos, tip_rotvec)
+
     def __post_init__(self) -> None:
         for name in ("tip_pos", "tip_rotvec"):
             v = getattr(self, name)
@@ -67,21 +77,9 @@ class ToolConfig:
 
 #: Ultrasound probe: probe face {U} 0.13 m along the flange's z (reference: the end-effector
 #: frame is 0.13 m from the probe face along the beam axis), x_U/y_U parallel to the flange's x/y.
-PROBE_TOOL = ToolConfig(
-    urdf="probe_tool.urdf",
-    mount_link="probe_mount",
-    tip_link="probe_face",
-    tip_joint="probe_face_joint",
-    tip_pos=(0.0, 0.0, 0.13),
-)
+PROBE_TOOL = ToolConfig.shipped("probe", "probe_face", (0.0, 0.0, 0.13))
 
 #: Surgical drill: drill tip {D} 0.135 m along the flange's z, z_D along the flange's z. The
 #: reference writes the same tip as (its drill body) o (translation (0, 0, -0.135) m, 180 deg
 #: about y) because that body's z points back toward the arm; ours points out of the flange.
-DRILL_TOOL = ToolConfig(
-    urdf="drill_tool.urdf",
-    mount_link="drill_mount",
-    tip_link="drill_tip",
-    tip_joint="drill_tip_joint",
-    tip_pos=(0.0, 0.0, 0.135),
-)
+DRILL_TOOL = ToolConfig.shipped("drill", "drill_tip", (0.0, 0.0, 0.135))

@@ -27,21 +27,39 @@ from sonogym.envs.policy import Policy
 
 @dataclass
 class Step:
-    """One env step of a rollout (tensors batch-first over the env's ``num_envs``)."""
+    """One env step of a rollout (tensors batch-first over the env's ``num_envs``): what the
+    action was chosen from, the action, and what ``env.step`` returned."""
 
     t: int  # step index within this rollout, from 0
     obs: Any  # observation the action was chosen from
     info: dict[str, Any]  # the info the action was chosen from
     action: torch.Tensor  # (N, A)
+    next_obs: Any  # what the policy sees next (new episodes' first obs where done)
     reward: torch.Tensor  # (N,)
     terminated: torch.Tensor  # (N,) bool
     truncated: torch.Tensor  # (N,) bool
-    next_obs: Any  # what the policy sees next (new episodes' first obs where done)
     next_info: dict[str, Any]  # the info of this transition
-    done: torch.Tensor  # (N,) bool, episode ended with this step
-    final_obs: Any | None  # true last observation of the ended episodes (rows where done)
-    final_info: dict[str, torch.Tensor] | None  # metrics of ended episodes, with "env_ids"
-    reset_info: dict[str, Any] | None  # info of every env's current state, when any was reset
+    reset_info: dict[str, Any] | None = None  # info of every env's state when any was reset
+
+    @property
+    def done(self) -> torch.Tensor:
+        """(N,) bool, the episode ended with this step."""
+        return self.terminated | self.truncated
+
+    @property
+    def ended(self) -> bool:
+        """Whether any episode ended with this step."""
+        return "final_info" in self.next_info
+
+    @property
+    def final_obs(self) -> Any | None:
+        """True last observation of the ended episodes (rows where done), else None."""
+        return self.next_info.get("final_obs") if self.ended else None
+
+    @property
+    def final_info(self) -> dict[str, torch.Tensor] | None:
+        """Metrics of the ended episodes, with "env_ids", else None."""
+        return self.next_info.get("final_info") if self.ended else None
 
 
 def rollout(
@@ -67,29 +85,14 @@ def rollout(
     for t in range(num_steps):
         with torch.no_grad():
             action = policy.act(obs, info)
-        next_obs, reward, terminated, truncated, next_info = env.step(action)
-        done = terminated | truncated
-        ended = "final_info" in next_info
-        step = Step(
-            t=t,
-            obs=obs,
-            info=info,
-            action=action,
-            reward=reward,
-            terminated=terminated,
-            truncated=truncated,
-            next_obs=next_obs,
-            next_info=next_info,
-            done=done,
-            final_obs=next_info.get("final_obs") if ended else None,
-            final_info=next_info.get("final_info") if ended else None,
-            reset_info=env.current_info() if ended else None,
-        )
+        step = Step(t, obs, info, action, *env.step(action))
+        if step.ended:
+            step.reset_info = env.current_info()
         yield step
-        if ended:
-            policy.reset(done)
+        if step.ended:
+            policy.reset(step.done)
             # the new episodes' start states, so the next action sees where they begin
             info = step.reset_info
         else:
-            info = next_info
-        obs = next_obs
+            info = step.next_info
+        obs = step.next_obs

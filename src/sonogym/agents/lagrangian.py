@@ -81,12 +81,8 @@ class PPOLagrangian(PPO):
     def __init__(self, *, models, cfg: PPO_LAG_CFG, **kwargs) -> None:
         super().__init__(models=models, cfg=cfg, **kwargs)
         self.cost_value = models["cost_value"]
-        self.cost_optimizer = torch.optim.Adam(
-            self.cost_value.parameters(), lr=self.cfg.cost_learning_rate
-        )
+        self.cost_optimizer = self.cost_value.attach(self, self.cfg.cost_learning_rate)
         self.lagrangian = PIDLagrangian(*self.cfg.pid_gains).to(self.device)
-        self.checkpoint_modules["cost_value"] = self.cost_value
-        self.checkpoint_modules["cost_optimizer"] = self.cost_optimizer
         self.checkpoint_modules["lagrangian"] = self.lagrangian
         self._current_cost_values = None
 

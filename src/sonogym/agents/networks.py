@@ -39,6 +39,7 @@ on one CPU core, where the update is compute-bound (``NET_SIZES``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import torch
@@ -125,6 +126,14 @@ class CostModel(DeterministicMixin, Model):
     def add_head(self, action_dim: int) -> None:
         """Build the layers after the encoder (``encoder.out_features`` inputs)."""
         raise NotImplementedError
+
+    def attach(self, agent: Any, learning_rate: float) -> torch.optim.Adam:
+        """Its own Adam optimiser (the policy's does not train it); the model and the
+        optimiser are saved in ``agent``'s checkpoints as ``ROLE`` and "cost_optimizer"."""
+        optimizer = torch.optim.Adam(self.parameters(), lr=learning_rate)
+        agent.checkpoint_modules[self.ROLE] = self
+        agent.checkpoint_modules["cost_optimizer"] = optimizer
+        return optimizer
 
 
 def conv_stack(in_shape: tuple[int, int, int], spec) -> tuple[nn.Sequential, int]:

@@ -79,11 +79,7 @@ class PPOSafetyFilter(PPO):
     def __init__(self, *, models, cfg: PPO_SF_CFG, **kwargs) -> None:
         super().__init__(models=models, cfg=cfg, **kwargs)
         self.cost_critic = models["cost_critic"]
-        self.cost_optimizer = torch.optim.Adam(
-            self.cost_critic.parameters(), lr=self.cfg.cost_learning_rate
-        )
-        self.checkpoint_modules["cost_critic"] = self.cost_critic
-        self.checkpoint_modules["cost_optimizer"] = self.cost_optimizer
+        self.cost_optimizer = self.cost_critic.attach(self, self.cfg.cost_learning_rate)
 
     def init(self, *, trainer_cfg=None) -> None:
         super().init(trainer_cfg=trainer_cfg)

@@ -75,22 +75,16 @@ class LevelDims:
     def scaled(self, body: float, posterior: float, disc: float) -> LevelDims:
         """Body and canal lengths x ``body``, posterior elements x ``posterior``, disc x
         ``disc``; angles unchanged."""
-        return replace(
-            self,
-            body_half_width=self.body_half_width * body,
-            body_half_depth=self.body_half_depth * body,
-            body_half_height=self.body_half_height * body,
-            canal_half_width=self.canal_half_width * body,
-            canal_half_depth=self.canal_half_depth * body,
-            pedicle_width=self.pedicle_width * body,
-            pedicle_height=self.pedicle_height * body,
-            tp_half_span=self.tp_half_span * posterior,
-            spinous_length=self.spinous_length * posterior,
-            spinous_height=self.spinous_height * posterior,
-            lamina_thickness=self.lamina_thickness * posterior,
-            facet_half_distance=self.facet_half_distance * posterior,
-            disc_below=self.disc_below * disc,
-        )
+        factors = dict.fromkeys(BODY_LENGTHS, body) | dict.fromkeys(POSTERIOR_LENGTHS, posterior)
+        factors["disc_below"] = disc
+        return replace(self, **{k: getattr(self, k) * f for k, f in factors.items()})
+
+
+#: ``LevelDims`` fields that scale with the body, and with the posterior elements.
+BODY_LENGTHS = ("body_half_width", "body_half_depth", "body_half_height", "canal_half_width",
+                "canal_half_depth", "pedicle_width", "pedicle_height")  # fmt: skip
+POSTERIOR_LENGTHS = ("tp_half_span", "spinous_length", "spinous_height", "lamina_thickness",
+                     "facet_half_distance")  # fmt: skip
 
 
 #: Per-level dimensions at scale 1 (means of adult series; docs/anatomy.md cites them).

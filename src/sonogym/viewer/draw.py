@@ -185,27 +185,14 @@ def log_surgery_plan(
     cylinder of radius d/2 along z_G from p_z = -l to 0, wireframe) and the plane p_z = -l that
     bounds C_free (the half-space beyond it, away from the target), static."""
     log_pose(rec, "world/goal", goal_pos, goal_rot, 0.02, static=True)
-    rec.log(
-        "world/goal/c_drill",
-        rr.Cylinders3D(
-            lengths=[skin_distance],
-            radii=[half_width],
-            centers=[[0.0, 0.0, -skin_distance / 2]],
-            colors=[CORRIDOR_COLOR],
-            fill_mode=rr.components.FillMode.MajorWireframe,
-        ),
-        static=True,
-    )
-    rec.log(
-        "world/goal/c_free",
-        rr.Boxes3D(
-            centers=[[0.0, 0.0, -skin_distance]],
-            half_sizes=[[0.03, 0.03, 0.0]],
-            colors=[GOAL_COLOR],
-            fill_mode=rr.components.FillMode.MajorWireframe,
-        ),
-        static=True,
-    )
+    wire = rr.components.FillMode.MajorWireframe
+    c_drill = rr.Cylinders3D(lengths=[skin_distance], radii=[half_width],
+                             centers=[[0.0, 0.0, -skin_distance / 2]], colors=[CORRIDOR_COLOR],
+                             fill_mode=wire)  # fmt: skip
+    c_free = rr.Boxes3D(centers=[[0.0, 0.0, -skin_distance]], half_sizes=[[0.03, 0.03, 0.0]],
+                        colors=[GOAL_COLOR], fill_mode=wire)  # fmt: skip
+    rec.log("world/goal/c_drill", c_drill, static=True)
+    rec.log("world/goal/c_free", c_free, static=True)
     rec.log(
         "world/plan",
         rr.LineStrips3D(

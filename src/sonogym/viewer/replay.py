@@ -127,17 +127,11 @@ def view_run_episode(
     sc = env.scene
     quads = image_quads(sc.probe_geometry)
     if plan is not None:
-        g_pos, g_rot = sc.goal_pos[0].cpu().numpy(), sc.goal_rot[0].cpu().numpy()
+        g_pos, g_rot = _first_env(sc.goal_pos, sc.goal_rot)
         draw.log_surgery_plan(
             rec, g_pos, g_rot, plan.entry, plan.target, float(env.half_width[0]), cfg.skin_distance
         )
-        draw.log_pose(
-            rec,
-            "world/probe",
-            sc.probe_pos[0].cpu().numpy(),
-            sc.probe_rot[0].cpu().numpy(),
-            static=True,
-        )
+        draw.log_pose(rec, "world/probe", *_first_env(sc.probe_pos, sc.probe_rot), static=True)
         draw.log_image_outlines(rec, quads)
         points = to_frame(g_pos, g_rot, si)  # the tip in {P}
         for t, p in enumerate(points):
@@ -147,13 +141,7 @@ def view_run_episode(
             draw.log_scalars(rec, {k: v for k, v in zip(series, track[t], strict=True)})
     else:
         if hasattr(env, "goal_rot"):
-            draw.log_pose(
-                rec,
-                "world/goal",
-                env.goal_pos[0].cpu().numpy(),
-                env.goal_rot[0].cpu().numpy(),
-                static=True,
-            )
+            draw.log_pose(rec, "world/goal", *_first_env(env.goal_pos, env.goal_rot), static=True)
         draw.log_image_outlines(rec, quads)
         goal = env.goal_cmd[0].double().cpu().numpy()
         cmd = torch.as_tensor(goal[: len(cols)] + si, dtype=torch.float32)  # x, z, yaw[, tilt]
@@ -233,3 +221,8 @@ def view_dataset_episode(
         )
     )
     return ViewResult(len(frames), list(images.values()), list(numeric.values()))
+
+
+def _first_env(*tensors: torch.Tensor) -> list[np.ndarray]:
+    """Env 0's rows as numpy arrays (the replay shows env 0)."""
+    return [t[0].cpu().numpy() for t in tensors]

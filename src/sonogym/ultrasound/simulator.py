@@ -64,6 +64,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 
@@ -198,6 +199,18 @@ def _large_scale_block(h: int, w: int, dz: float, dx: float, limit: float = 2.5e
     """Largest common divisor k of h and w with k pixels <= ``limit`` metres."""
     g = math.gcd(h, w)
     return max(k for k in range(1, g + 1) if g % k == 0 and (k == 1 or k * max(dz, dx) <= limit))
+
+
+class _Chunk(NamedTuple):
+    """Part of a batch, as a model's chunk step takes it."""
+
+    ct: torch.Tensor  # (B, H, W) float32, HU
+    lab: torch.Tensor  # (B, H, W) int32 labels, air in the gel band read as GEL (workspace)
+    geom: tuple  # per image: origin, row step, column step (m), speckle and large-scale keys
+    k: dict  # the probe's constants (``_constants``)
+    display: bool  # map to the display range [0, 1] (else the raw image)
+    out: torch.Tensor  # (B, H, W) float32, the images
+    ws: Workspace  # the chunk's scratch buffers
 
 
 def _buf(ws: Workspace, name: str, like: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
@@ -368,7 +381,8 @@ class ModelBasedSimulator:
 
         def run(sl: slice, ws: Workspace) -> None:
             geom = (origin[sl], row[sl], col[sl], mix[sl], mix_ls[sl])
-            chunk(ct[sl], lab[sl], geom, k, display, flat[sl], ws)
+            labels = self._labels(lab[sl], k, ws)
+            chunk(_Chunk(ct[sl], labels, geom, k, display, flat[sl], ws))
 
         self._chunks.run(run, [slice(s, min(b_all, s + step)) for s in range(0, b_all, step)])
         return out
@@ -416,18 +430,9 @@ class ModelBasedSimulator:
         return amp, bits
 
     # ------------------------------------------------------------- sonogym
-    def _sonogym_chunk(
-        self,
-        ct: torch.Tensor,
-        lab8: torch.Tensor,
-        geom: tuple,
-        k: dict,
-        display: bool,
-        out: torch.Tensor,
-        ws: Workspace,
-    ) -> None:
+    def _sonogym_chunk(self, chunk: _Chunk) -> None:
         m: SonoGymModel = self.model  # type: ignore[assignment]
-        lab = self._labels(lab8, k, ws)
+        ct, lab, geom, k, display, out, ws = chunk
         g = k["gel_rows"]
         # Attenuation, inclusive of the current pixel: A_B = exp(-sum (alpha - beta_B) dz).
         a_b = _buf(ws, "a", ct)
@@ -469,18 +474,9 @@ class ModelBasedSimulator:
             torch.add(back, refl, alpha=m.e_s_ratio, out=out)
 
     # ------------------------------------------------------------ physical
-    def _physical_chunk(
-        self,
-        ct: torch.Tensor,
-        lab8: torch.Tensor,
-        geom: tuple,
-        k: dict,
-        display: bool,
-        out: torch.Tensor,
-        ws: Workspace,
-    ) -> None:
+    def _physical_chunk(self, chunk: _Chunk) -> None:
         m: PhysicalModel = self.model  # type: ignore[assignment]
-        lab = self._labels(lab8, k, ws)
+        ct, lab, geom, k, display, out, ws = chunk
         g = k["gel_rows"]
         z_gel = k["z_gel"]
         flat_lab = lab.view(-1)

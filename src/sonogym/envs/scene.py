@@ -1,11 +1,11 @@
 """What every task's scene shares: per-env patients and the imaging of a probe on them.
 
 ``PatientScene`` holds, for N envs, the patients (env i -> patient i % P), their stacked skin
-surfaces, the target vertebra's centre, and the imaging chain of one probe geometry: a slicer
-over all patients, the ultrasound simulator (model-based preset or learned nets, one net per
-env redrawn at its resets) and ``observe``, which images each env's reached probe pose.
-Subclasses (``ProbeScene`` for navigation and reconstruction, ``SurgeryScene``) add the arms
-and keep ``probe_pos`` (N, 3) and ``probe_rot`` (N, 3, 3) up to date.
+surfaces, the target vertebra's centre, and the imaging chain of one probe geometry: a slicer over
+all patients, the ultrasound simulator (a model-based ultrasound model, or learned nets, one net per
+env redrawn at its resets) and ``observe``, which images each env's reached probe pose. Subclasses
+(``ProbeScene`` for navigation and reconstruction, ``SurgeryScene``) add the arms and keep
+``probe_pos`` (N, 3) and ``probe_rot`` (N, 3, 3) up to date.
 """
 
 from __future__ import annotations
@@ -91,14 +91,14 @@ class PatientScene:
         patients: phantom seeds and/or TotalSegmentator folders.
         num_envs: N.
         spacing: voxel size (m) of phantoms / resampled folders.
-        simulator: "physical" or "sonogym" (model-based presets) or "learned".
+        simulator: "physical" or "sonogym" (model-based ultrasound models) or "learned".
         learned_nets: nets of ``simulator="learned"`` (ints: shipped nets, str: weight files);
             each env uses ``nets.index`` into them, redrawn by ``draw_nets`` at its resets.
         target_vertebra: the vertebra whose body centroid anchors goals and arm placement.
         device: torch device of everything.
         probe: the imaging geometry.
-        gel_depth: m, coupling gel under the probe face, overriding the model-based preset's
-            (None keeps the preset's).
+        gel_depth: m, coupling gel under the probe face, overriding the ultrasound model's
+            (None keeps the model's).
         learned_precision: working precision of the learned nets ("float32", "bfloat16").
         reach: where the task's probe can be; the slicer then keeps only what it can image
             (``imaging_reach_boxes``); None keeps the whole volumes.
@@ -239,7 +239,7 @@ class PatientScene:
 
     def slices(self, env_ids: torch.Tensor | None = None):
         """CT and label slices at the reached probe poses of ``env_ids`` (None: all), with each
-        env's learned net (``Slices.net_index``; the model-based presets ignore it)."""
+        env's learned net (``Slices.net_index``; the model-based simulators ignore it)."""
         sl = slice(None) if env_ids is None else env_ids
         s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
         return replace(s, net_index=self.nets.index[sl])

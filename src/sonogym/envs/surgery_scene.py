@@ -78,8 +78,8 @@ class SurgeryScene(PatientScene):
         patients: phantom seeds and/or TotalSegmentator folders.
         num_envs: N.
         spacing: voxel size (m) of phantoms / resampled folders.
-        simulator: "physical" or "sonogym" (model-based presets) or "learned" (the 2-D nets
-            applied slice by slice to the volume's elevation slices).
+        simulator: "physical" or "sonogym" (model-based ultrasound models) or "learned" (the 2-D
+            nets applied slice by slice to the volume's elevation slices).
         side: "right" or "left": the drilled pedicle (the patient's side).
         target_vertebra: the drilled vertebra.
         device: torch device of everything.
@@ -89,9 +89,9 @@ class SurgeryScene(PatientScene):
         probe_tilt: rad, image-plane tilt toward the midline.
         probe_yaw: rad, yaw of the probe's lateral axis x_U (pi/2: along the spine).
         probe_settle_steps: control steps of the probe arm's settle at a reset.
-        gel_depth: m, coupling gel under the probe face (overrides the simulator preset's):
+        gel_depth: m, coupling gel under the probe face (overrides the ultrasound model's):
             tilted by ``probe_tilt``, the face's elevation edges stand off the skin (20 mm *
-            sin 0.4 = 8 mm), and gel fills that wedge. None keeps the preset's value.
+            sin 0.4 = 8 mm), and gel fills that wedge. None keeps the model's value.
         render: build the slicer and simulator now (else on first ``observe``).
         learned_nets: nets of ``simulator="learned"`` (see ``ProbeScene``).
     """

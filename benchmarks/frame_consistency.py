@@ -1,11 +1,11 @@
 """Frame-to-frame consistency: correlation of images 0.5 mm of probe motion apart.
 
 The paper's limitation: its GAN images lack consistency between consecutive frames. For --poses
-random navigation poses around L4 on the seed-0 phantom (1 mm), the 200 x 150 env image at the
-pose and at the pose moved by --step (0.5 mm) along the probe's lateral axis x_U (in plane) and
-along its elevation axis y_U (out of plane); Pearson correlation of each pair, mean +- sd over
-poses, for the model-based presets and each shipped net (the envs' simulator: LUT fitted once
-by ``sonogym.envs.imaging.matching_sample``).
+random navigation poses around L4 on the seed-0 phantom (1 mm), the 200 x 150 env image at the pose
+and at the pose moved by --step (0.5 mm) along the probe's lateral axis x_U (in plane) and along its
+elevation axis y_U (out of plane); Pearson correlation of each pair, mean +- sd over poses, for the
+model-based ultrasound models and each shipped net (the envs' simulator: LUT fitted once by
+``sonogym.envs.imaging.matching_sample``).
 
     python benchmarks/frame_consistency.py [--poses 64] [--step 0.5]
 """

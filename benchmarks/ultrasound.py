@@ -1,6 +1,6 @@
-"""Model-based ultrasound benchmark: slice + simulate time and images/s, both presets.
+"""Model-based ultrasound benchmark: slice + simulate time and images/s, both ultrasound models.
 
-Prints one table: for 1, 10, 100 and 400 envs, both presets, on CPU (and on CUDA when present):
+Prints one table: for 1, 10, 100 and 400 envs, both models, on CPU (and on CUDA when present):
 slice, simulate and total time per batch (median of --repeats, after one warm-up), images/s, and
 the memory the patient, the slicer and the simulator hold. Budget (DESIGN.md §7): 100 images of
 200 x 150, slice + simulate, <= 0.10 s on 2 CPU cores, <= 2 ms on one GPU, <= 300 MB per patient.
@@ -23,6 +23,7 @@ import os
 import resource
 import statistics
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -75,8 +76,8 @@ def run(args) -> list[dict]:
         sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
         slicer = Slicer(patient, probe, device=dev)
         sim_bytes = 0
-        for preset in args.presets:
-            sim = ModelBasedSimulator(preset, device=dev)
+        for model in args.models:
+            sim = ModelBasedSimulator(model, device=dev)
             for n in args.envs:
                 pos, rot = surface_poses(patient, n)
                 pos, rot = pos.to(dev), rot.to(dev)
@@ -84,7 +85,7 @@ def run(args) -> list[dict]:
                 rows.append(
                     dict(
                         device=dev,
-                        preset=preset,
+                        model=model,
                         envs=n,
                         slice_ms=ts[0] * 1e3,
                         simulate_ms=ts[1] * 1e3,
@@ -104,22 +105,31 @@ def run(args) -> list[dict]:
     return rows
 
 
+def _key(row: dict) -> tuple:
+    """(device, model, envs) of a row; figures saved before the rename name the model "preset"."""
+    return row["device"], row.get("model", row.get("preset")), row["envs"]
+
+
 def print_table(rows: list[dict], baseline: list[dict] | None, header: str) -> None:
     print(header)
-    base = {(r["device"], r["preset"], r["envs"]): r for r in baseline or []}
-    cols = "device  preset    envs  slice ms  simulate ms  total ms  (best)  CPU ms   images/s"
+    base = {_key(r): r for r in baseline or []}
+    cols = "device  model     envs  slice ms  simulate ms  total ms  (best)  CPU ms   images/s"
     print(cols + ("  vs baseline" if baseline else ""))
     print("-" * (len(cols) + (13 if baseline else 0)))
     for r in rows:
         line = (
-            f"{r['device']:<6}  {r['preset']:<8} {r['envs']:>5}  {r['slice_ms']:>8.2f}  "
+            f"{r['device']:<6}  {r['model']:<8} {r['envs']:>5}  {r['slice_ms']:>8.2f}  "
             f"{r['simulate_ms']:>11.2f}  {r['total_ms']:>8.2f} {r['best_total_ms']:>7.2f} "
             f"{r['cpu_total_ms']:>7.1f}  {r['images_per_s']:>9.0f}"
         )
-        b = base.get((r["device"], r["preset"], r["envs"]))
+        b = base.get(_key(r))
         if b:
             line += f"  {r['total_ms'] / b['total_ms']:>10.2f}x"
         print(line)
+
+
+def _names(text: str) -> list[str]:
+    return text.split(",")
 
 
 def main() -> None:
@@ -129,7 +139,8 @@ def main() -> None:
     ap.add_argument(
         "--envs", type=lambda s: [int(v) for v in s.split(",")], default=[1, 10, 100, 400]
     )
-    ap.add_argument("--presets", type=lambda s: s.split(","), default=["sonogym", "physical"])
+    ap.add_argument("--models", type=_names, help="ultrasound models (default: sonogym,physical)")
+    ap.add_argument("--presets", type=_names, help=argparse.SUPPRESS)  # the former --models
     ap.add_argument("--seed", type=int, default=0, help="phantom seed")
     ap.add_argument("--spacing", type=float, default=1.0, help="phantom voxel size, mm")
     ap.add_argument("--threads", type=int, default=2, help="CPU threads (torch.set_num_threads)")
@@ -138,6 +149,12 @@ def main() -> None:
     ap.add_argument("--save", type=Path, help="write the figures to this JSON file")
     ap.add_argument("--baseline", type=Path, help="compare with figures saved by --save")
     args = ap.parse_args()
+    if args.presets is not None:
+        warnings.warn("--presets is deprecated: use --models", DeprecationWarning, stacklevel=1)
+        if args.models not in (None, args.presets):
+            ap.error("--presets (deprecated) and --models differ: give --models only")
+        args.models = args.presets
+    args.models = args.models or ["sonogym", "physical"]
     torch.set_num_threads(args.threads)
     t0 = time.time()
     rows = run(args)

@@ -877,7 +877,7 @@ def lb_data(
     phantom_mm: Annotated[float, typer.Option(help="Phantom voxel size, mm (0.5-2).")] = 1.0,
     test_fraction: Annotated[float, typer.Option(help="Held-out fraction per phantom.")] = 0.125,
 ) -> None:
-    """Write default learned-simulator training pairs (CT slice + `physical` preset image)."""
+    """Write default learned-simulator training pairs (CT slice + `physical` model image)."""
     from sonogym.learned_training.data import write_default_pairs
 
     hw = list(size or [192, 160])

@@ -1,6 +1,6 @@
 """Per-episode imaging settings in the envs: drawn per env at each reset from the env's seeded
 generator, within their ranges; the rest of the episode (starts, nets) unchanged; off unless
-asked, on in navigation's ``cpu`` training preset, never in evaluation."""
+asked (both training presets leave it off), never in evaluation."""
 
 from __future__ import annotations
 

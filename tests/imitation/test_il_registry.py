@@ -106,7 +106,7 @@ def test_a_registered_policy_trains_and_is_evaluated_through_the_commands(
     cfg = json.loads((run / "config.json").read_text())
     assert (cfg["policy"], cfg["algo"], cfg["task"]) == ("brightness", "bright", "navigation")
     assert cfg["policy_config"] == MeanBrightnessConfig.cpu().to_dict()
-    assert cfg["policy_config"]["chunk"] == 3  # il-train's default preset: cpu
+    assert cfg["policy_config"]["chunk"] == 3  # il-train's default size: cpu
     assert load_run(run).algo == "bright" and algo_label("bright") == "Bright"
 
     res = runner.invoke(app, ["eval", "--run", str(run), "--trials", "2", "--envs", "2"])

@@ -195,7 +195,7 @@ def test_cli_record_il_train_and_eval_an_il_run(tmp_path):
     assert res.exit_code == 0, res.output
     cfg = json.loads((run / "config.json").read_text())
     assert (cfg["task"], cfg["algo"]) == ("navigation", "act")
-    assert cfg["policy_config"]["image_size"] == [50, 37]  # the cpu preset, images resampled
+    assert cfg["policy_config"]["image_size"] == [50, 37]  # the cpu size, images resampled
     assert cfg["policy_config"]["chunk_size"] == 20
     assert cfg["env_kwargs"] == {"phantom_spacing": 0.002}
     res = runner.invoke(app, ["eval", "--run", str(run), "--trials", "2", "--envs", "2"])

@@ -1,4 +1,4 @@
-"""Paired CT/US data: default pairs from the physical preset, the manifest and the reader."""
+"""Paired CT/US data: default pairs from the physical model, the manifest and the reader."""
 
 import json
 
@@ -46,6 +46,15 @@ def test_default_pairs_write_and_read_back(tiny):
     assert train.us.std() > 0.05 and train.ct.std() > 0.02
     # pairs differ from each other (random poses)
     assert (train.ct[0] - train.ct[1]).abs().mean() > 0
+
+
+def test_manifests_name_the_ultrasound_model_and_older_ones_still_read(tiny, tmp_path):
+    assert read_manifest(tiny)["source"]["us_model"].startswith("physical")
+    old = json.loads((tiny / "manifest.json").read_text())
+    old["source"]["preset"] = old["source"].pop("us_model")  # as written before the rename
+    (tmp_path / "manifest.json").write_text(json.dumps(old))
+    source = read_manifest(tmp_path)["source"]
+    assert source["us_model"].startswith("physical") and "preset" not in source
 
 
 def test_random_physical_models_differ():

@@ -22,13 +22,13 @@ def two_threads():
     torch.set_num_threads(old)
 
 
-@pytest.mark.parametrize("preset", ["physical", "sonogym"])
-def test_two_threads_give_the_same_bits_as_one(preset, two_threads):
+@pytest.mark.parametrize("model", ["physical", "sonogym"])
+def test_two_threads_give_the_same_bits_as_one(model, two_threads):
     patient = block_patient(ct_noise=10.0)
     pos, rot = random_poses(7, seed=5)
     # small chunks so both the slicer (2 envs) and the simulator (2 images) split the batch
     slicer = Slicer(patient, chunk_samples=2 * 100 * 75)
-    sim = ModelBasedSimulator(preset, chunk_pixels=2 * 200 * 150)
+    sim = ModelBasedSimulator(model, chunk_pixels=2 * 200 * 150)
     torch.set_num_threads(1)
     one = slicer(pos, rot)
     ct1, lab1 = one.ct.clone(), one.labels.clone()

@@ -1,4 +1,4 @@
-"""Properties both presets share: determinism, patient-fixed speckle, batching, errors."""
+"""Properties both ultrasound models share: determinism, patient-fixed speckle, batching, errors."""
 
 import pytest
 import torch
@@ -13,7 +13,7 @@ from sonogym.ultrasound import (
     make_model,
 )
 
-PRESETS = ["physical", "sonogym"]
+MODELS = ["physical", "sonogym"]
 
 
 @pytest.fixture(scope="module")
@@ -30,21 +30,21 @@ def _corr(a, b):
     return torch.corrcoef(torch.stack([a.flatten(), b.flatten()]))[0, 1].item()
 
 
-@pytest.mark.parametrize("preset", PRESETS)
-def test_same_pose_gives_the_same_image(slicer, preset):
+@pytest.mark.parametrize("model", MODELS)
+def test_same_pose_gives_the_same_image(slicer, model):
     pos, rot = random_poses(3, seed=1)
-    sim = ModelBasedSimulator(preset)
+    sim = ModelBasedSimulator(model)
     a = sim.simulate(slicer(pos, rot))
-    b = ModelBasedSimulator(preset).simulate(slicer(pos, rot))
+    b = ModelBasedSimulator(model).simulate(slicer(pos, rot))
     assert torch.equal(a, b)
     assert a.shape == (3, 1, 200, 150) and a.dtype == torch.float32
     assert a.min() >= 0 and a.max() <= 1
 
 
-@pytest.mark.parametrize("preset", PRESETS)
-def test_shifted_pose_gives_a_correlated_image(slicer, preset):
+@pytest.mark.parametrize("model", MODELS)
+def test_shifted_pose_gives_a_correlated_image(slicer, model):
     pos, rot = straight_down(1, z=0.01)
-    sim = ModelBasedSimulator(preset)
+    sim = ModelBasedSimulator(model)
     a = sim.simulate_raw(slicer(pos, rot))[0, 0]
     shifted = pos.clone()
     shifted[:, 0] += 0.5e-3  # half a millimetre = one pixel along the array
@@ -70,30 +70,30 @@ def test_shifted_pose_gives_a_correlated_image(slicer, preset):
     assert _corr(speckle(a[:, 1:]), speckle(b[:, :-1])) > 0.95
 
 
-@pytest.mark.parametrize("preset", PRESETS)
-def test_batched_equals_one_by_one(slicer, preset):
+@pytest.mark.parametrize("model", MODELS)
+def test_batched_equals_one_by_one(slicer, model):
     pos, rot = random_poses(5, seed=2)
-    sim = ModelBasedSimulator(preset, chunk_pixels=2 * 200 * 150)  # chunks of two images
+    sim = ModelBasedSimulator(model, chunk_pixels=2 * 200 * 150)  # chunks of two images
     batch = sim.simulate(slicer(pos, rot))
     for i in range(5):
-        one = ModelBasedSimulator(preset).simulate(slicer(pos[i : i + 1], rot[i : i + 1]))
+        one = ModelBasedSimulator(model).simulate(slicer(pos[i : i + 1], rot[i : i + 1]))
         assert torch.equal(one[0], batch[i])
 
 
-@pytest.mark.parametrize("preset", PRESETS)
-def test_volume_probe(patient, preset):
+@pytest.mark.parametrize("model", MODELS)
+def test_volume_probe(patient, model):
     probe = ProbeGeometry.volume_3d()
     pos, rot = random_poses(2, seed=3, max_angle=0.2)
-    img = ModelBasedSimulator(preset).simulate(Slicer(patient, probe)(pos, rot))
+    img = ModelBasedSimulator(model).simulate(Slicer(patient, probe)(pos, rot))
     assert img.shape == (2, 5, 50, 37)
     assert img.min() >= 0 and img.max() <= 1 and img.std() > 0.01
 
 
-@pytest.mark.parametrize("preset", PRESETS)
-def test_out_buffer(slicer, preset):
+@pytest.mark.parametrize("model", MODELS)
+def test_out_buffer(slicer, model):
     pos, rot = random_poses(2, seed=4)
     s = slicer(pos, rot)
-    sim = ModelBasedSimulator(preset)
+    sim = ModelBasedSimulator(model)
     out = torch.empty(2, 1, 200, 150)
     res = sim.simulate(s, out=out)
     assert res.data_ptr() == out.data_ptr() and torch.equal(res, sim.simulate(s))
@@ -101,8 +101,8 @@ def test_out_buffer(slicer, preset):
         sim.simulate(s, out=torch.empty(3, 1, 200, 150))
 
 
-def test_unknown_preset_lists_the_known_ones():
-    with pytest.raises(ValueError, match=r"unknown ultrasound preset 'fancy'.*physical.*sonogym"):
+def test_unknown_model_lists_the_known_ones():
+    with pytest.raises(ValueError, match=r"unknown ultrasound model 'fancy'.*physical.*sonogym"):
         ModelBasedSimulator("fancy")
 
 
@@ -112,13 +112,36 @@ def test_bad_input_raises(slicer):
         sim.simulate(torch.zeros(1, 1, 200, 150))
 
 
-def test_protocol_and_presets():
+def test_protocol_and_models():
     sim = ModelBasedSimulator("sonogym")
     assert isinstance(sim, UltrasoundSimulator)
-    assert sim.preset == "sonogym" and make_model("physical").name == "physical"
+    assert sim.model.name == "sonogym" and make_model("physical").name == "physical"
     model = PhysicalModel(frequency=5e6)
     assert ModelBasedSimulator(model).model is model
     assert model.axial_sigma < PhysicalModel().axial_sigma  # shorter wavelength, finer PSF
+
+
+def test_the_former_preset_spellings_still_work_and_warn(slicer):
+    """The models were called presets before "preset" meant the device preset only."""
+    import sonogym.ultrasound as us
+    from sonogym.ultrasound import US_MODELS, SonoGymModel
+
+    with pytest.warns(DeprecationWarning, match=r"ModelBasedSimulator\(preset=...\) is deprec"):
+        old = ModelBasedSimulator(preset="sonogym")
+    assert isinstance(old.model, SonoGymModel)
+    s = slicer(*random_poses(2, seed=3))
+    assert torch.equal(old.simulate(s), ModelBasedSimulator(model="sonogym").simulate(s))
+    with pytest.warns(DeprecationWarning, match=r"\.preset is deprecated: use \.model\.name"):
+        assert old.preset == "sonogym"
+    with pytest.warns(DeprecationWarning, match=r"make_model\(preset=...\) is deprecated"):
+        assert make_model(preset="physical").name == "physical"
+    for module in (us, us.simulator):
+        with pytest.warns(DeprecationWarning, match="PRESETS is deprecated: use US_MODELS"):
+            assert module.PRESETS is US_MODELS
+    with pytest.raises(AttributeError, match="no attribute 'PRESET'"):
+        us.PRESET  # noqa: B018
+    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="give model only"):
+        ModelBasedSimulator("sonogym", preset="physical")
 
 
 def test_memory_is_small(slicer):
@@ -132,7 +155,7 @@ def test_memory_is_small(slicer):
 @pytest.mark.parametrize("taps", [[1.0], [1.0] * 3, [1.0] * 5, [0.2, 1.0, 0.3], [0.0, 1.0, 0.5]])
 @pytest.mark.parametrize("h", [1, 2, 7])
 def test_blur_with_a_unit_centre_tap_matches_the_multiply_first_blur(taps, h):
-    # blur_1d skips the multiply when the centre tap is 1 (the physical preset's 1 mm interface
+    # blur_1d skips the multiply when the centre tap is 1 (the physical model's 1 mm interface
     # sum and its axial PSF): bit for bit the multiply-then-add correlation, zero beyond edges
     from sonogym.ultrasound import psf
 

@@ -49,11 +49,11 @@ def test_upsampled_sampling_is_close_to_exact(patient):
     diff = (a.ct - b.ct).abs()
     assert diff.mean() < 10.0  # HU; differences sit at sharp edges only
     assert (a.labels != b.labels).float().mean() < 0.02
-    # ... and indistinguishable once imaged; the sonogym preset's reflections come from
+    # ... and indistinguishable once imaged; the sonogym model's reflections come from
     # per-pixel CT jumps, so its bone lines vary with how an edge's ramp is sampled (as the
     # reference's did with its nearest lookup): same structure, brightness within ~30 %.
-    for preset, min_corr in (("physical", 0.97), ("sonogym", 0.9)):
-        sim = ModelBasedSimulator(preset)
+    for model, min_corr in (("physical", 0.97), ("sonogym", 0.9)):
+        sim = ModelBasedSimulator(model)
         ia, ib = sim.simulate(a), sim.simulate(b)
         assert (ia - ib).abs().mean() < 0.01
         corr = torch.corrcoef(torch.stack([ia.flatten(), ib.flatten()]))[0, 1]

@@ -1,13 +1,12 @@
-"""The envs' ultrasound simulator: model-based presets or the learned nets, one interface.
+"""The envs' ultrasound simulator: model-based or the learned nets, one interface.
 
-``simulator="physical"`` / ``"sonogym"``: ``ModelBasedSimulator`` presets. ``"learned"``: a
-``LearnedSimulator`` over the nets of ``learned_nets`` (ints: shipped nets by index, strings:
-paths to ``generator.pt`` files). Like the paper, each env draws one net of the set uniformly
-at every episode reset, from the env's seeded generator (``NetChoice``), so a vectorised env
-shows several nets at once; ``learned_nets=(4,)`` uses net 4 only. The scene hands each env's
-net to the simulator with its slices (``Slices.net_index``), so every simulator is called the
-same way, ``simulator.simulate(slices)``.
-
+``simulator="physical"`` / ``"sonogym"``: ``ModelBasedSimulator`` with that ultrasound model.
+``"learned"``: a ``LearnedSimulator`` over the nets of ``learned_nets`` (ints: shipped nets by
+index, strings: paths to ``generator.pt`` files). Like the paper, each env draws one net of the set
+uniformly at every episode reset, from the env's seeded generator (``NetChoice``), so a vectorised
+env shows several nets at once; ``learned_nets=(4,)`` uses net 4 only. The scene hands each env's
+net to the simulator with its slices (``Slices.net_index``), so every simulator is called the same
+way, ``simulator.simulate(slices)``.
 Histogram matching: the LUT that maps the envs' CT onto each net's training CT is fitted once,
 at construction, on CT slices at fixed pseudo-random probe poses over every patient's lower back
 (``matching_sample``), so images are deterministic per pose and independent of the batch.
@@ -20,7 +19,7 @@ from typing import Literal, get_args
 import numpy as np
 import torch
 
-#: Ultrasound simulators of an env: the model-based presets or the learned nets.
+#: Ultrasound simulators of an env: the model-based ultrasound models or the learned nets.
 SimulatorName = Literal["physical", "sonogym", "learned"]
 SIMULATORS: tuple[str, ...] = get_args(SimulatorName)
 DEFAULT_LEARNED_NETS = (0, 1, 2, 3, 4)
@@ -72,8 +71,9 @@ def build_simulator(
     model=None,
     learned_precision: str = "float32",
 ):
-    """The simulator of an env scene. ``model`` overrides the model-based preset's model;
-    ``learned_precision`` is the learned nets' working precision ("float32", "bfloat16")."""
+    """The simulator of an env scene. ``model``: a configured ``PhysicalModel``/``SonoGymModel``
+    used instead of the ultrasound model ``name``; ``learned_precision``: the learned nets'
+    working precision ("float32", "bfloat16")."""
     if name == "learned":
         from sonogym.ultrasound.learned.shipped import resolve_nets
         from sonogym.ultrasound.learned.simulator import LearnedSimulator

@@ -1,11 +1,11 @@
 """What every task's scene shares: per-env patients and the imaging of a probe on them.
 
 ``PatientScene`` holds, for N envs, the patients (env i -> patient i % P), their stacked skin
-surfaces, the target vertebra's centre, and the imaging chain of one probe geometry: a slicer
-over all patients, the ultrasound simulator (model-based preset or learned nets, one net per
-env redrawn at its resets) and ``observe``, which images each env's reached probe pose.
-Subclasses (``ProbeScene`` for navigation and reconstruction, ``SurgeryScene``) add the arms
-and keep ``probe_pos`` (N, 3) and ``probe_rot`` (N, 3, 3) up to date.
+surfaces, the target vertebra's centre, and the imaging chain of one probe geometry: a slicer over
+all patients, the ultrasound simulator (a model-based ultrasound model, or learned nets, one net per
+env redrawn at its resets) and ``observe``, which images each env's reached probe pose. Subclasses
+(``ProbeScene`` for navigation and reconstruction, ``SurgeryScene``) add the arms and keep
+``probe_pos`` (N, 3) and ``probe_rot`` (N, 3, 3) up to date.
 """
 
 from __future__ import annotations
@@ -97,8 +97,8 @@ class PatientScene:
         num_envs: N.
         device: torch device of everything.
         probe: the imaging geometry.
-        gel_depth: m, coupling gel under the probe face, overriding the model-based
-            simulator's (None keeps its own).
+        gel_depth: m, coupling gel under the probe face, overriding the ultrasound
+            model's (None keeps the model's).
         reach: where the task's probe can be; the slicer then keeps only what it can image
             (``imaging_reach_boxes``); None keeps the whole volumes.
         keep_volumes: True: load every patient whole first (for tasks that read the volumes
@@ -236,7 +236,7 @@ class PatientScene:
 
     def slices(self, env_ids: torch.Tensor | None = None):
         """CT and label slices at the reached probe poses of ``env_ids`` (None: all), with each
-        env's learned net (``Slices.net_index``; the model-based presets ignore it)."""
+        env's learned net (``Slices.net_index``; the model-based simulators ignore it)."""
         sl = slice(None) if env_ids is None else env_ids
         s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
         return replace(s, net_index=self.nets.index[sl])

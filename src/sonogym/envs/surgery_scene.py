@@ -85,8 +85,8 @@ class SurgeryScene(PatientScene):
             ``probe_tilt``: rad, image-plane tilt toward the midline;
             ``probe_yaw``: rad, yaw of the probe's lateral axis x_U (pi/2: along the spine);
             ``probe_settle_steps``: control steps of the probe arm's settle at a reset;
-            ``gel_depth``: m, coupling gel under the probe face (overrides the model-based
-            simulator's): tilted by ``probe_tilt``, the face's elevation edges stand off the
+            ``gel_depth``: m, coupling gel under the probe face (overrides the ultrasound
+            model's): tilted by ``probe_tilt``, the face's elevation edges stand off the
             skin (20 mm * sin 0.4 = 8 mm), and gel fills that wedge. None keeps its own;
             ``crop_to_reach``: images slice only what the still probe can image.
         num_envs: N.

@@ -151,7 +151,7 @@ PROTOCOLS = ("idt", "odt-sim", "odt-patient")
 
 
 def simulator_group(simulator: str | None) -> str:
-    """The paper's simulator group: "LB" (learned) or "MB" (model-based presets)."""
+    """The paper's simulator group: "LB" (learned) or "MB" (model-based)."""
     return "LB" if simulator == "learned" else "MB"
 
 

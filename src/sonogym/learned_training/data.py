@@ -4,7 +4,7 @@ Format (version 1): a folder with ``manifest.json``::
 
     {"format": "sonogym-paired-ct-us", "version": 1,
      "pixel_spacing_m": [depth, width], "ct_window_hu": [-300.0, 1641.0],
-     "image_size": [H, W], "source": {...free-form provenance...},
+     "image_size": [H, W], "source": {...free-form provenance, e.g. "us_model"...},
      "pairs": [{"ct": "pairs/00000.npz", "us": "pairs/00000.npz", "split": "train"}, ...]}
 
 and ``pairs/NNNNN.npz`` files holding ``ct`` (float32 (H, W), Hounsfield units) and ``us``
@@ -59,6 +59,9 @@ def read_manifest(root: str | Path) -> dict:
             raise PairedDataError(f"{path}: pair {i} needs 'ct', 'us' and 'split'")
         if p["split"] not in SPLITS:
             raise PairedDataError(f"{path}: pair {i} split {p['split']!r} not in {SPLITS}")
+    source = m.get("source")
+    if isinstance(source, dict) and "preset" in source and "us_model" not in source:
+        source["us_model"] = source.pop("preset")  # the key's name in older manifests
     return m
 
 
@@ -140,7 +143,7 @@ def write_manifest(root: Path, pairs: list[dict], spacing, size, window, source:
 
 
 def random_physical_model(rng: np.random.Generator):
-    """The ``physical`` preset with randomised gain, PSF (frequency, pulse length, f-number)
+    """The ``physical`` model with randomised gain, PSF (frequency, pulse length, f-number)
     and attenuation (tissue alpha scale and the TGC's compensated alpha)."""
     from sonogym.ultrasound.simulator import PhysicalModel
     from sonogym.ultrasound.tissues import TissueTable, physical_table
@@ -203,7 +206,7 @@ def write_default_pairs(
     progress: bool = False,
     model_seed: int | None = None,
 ) -> Path:
-    """Simulated training pairs: CT slices and ``physical``-preset images of phantoms.
+    """Simulated training pairs: CT slices and ``physical``-model images of phantoms.
 
     Phantom ``seeds`` should stay apart from the env seeds (default 1000-1004). Probe poses are
     random on the back's skin around the spine (x within +-40 mm, z along the lumbar spine,
@@ -271,7 +274,7 @@ def write_default_pairs(
     bar.close()
     source = {
         "generator": "sonogym.learned_training.data.write_default_pairs",
-        "preset": "physical (randomised gain, PSF, attenuation)",
+        "us_model": "physical (randomised gain, PSF, attenuation)",
         "phantom_seeds": seeds,
         "phantom_spacing_m": phantom_spacing,
         "slicer_upsample": False,

@@ -4,16 +4,16 @@
 ``scripts/train_learned_nets.sh``) rebuilds everything the package ships under
 ``sonogym/ultrasound/learned/weights/``:
 
-* ``data``: per net k (0-4) a paired set from the ``physical`` preset on phantoms 1000-1004
-  (``train`` / ``test`` split: the last 12.5 % of each phantom's poses) and a set on the unseen
-  phantom 1005 (all ``test``), at 100 x 75 px and 1 mm pixels: the field of view of the envs'
-  2-D image (200 x 150 at 0.5 mm) and, within 1 mm, of the surgery volume's slices (50 x 37 at
-  2 mm), at half the 2-D image's resolution. Net k's pairs use one randomised ``physical``
-  model (gain, PSF, attenuation) drawn from ``STYLE_SEED_BASE + k``, its own probe poses
-  (``rng_seed = k``) and its own init / batch order (``seed = k``). A deterministic generator
-  cannot learn a gain it does not see in the CT, so randomising physics *within* a net's data
-  only averages it away; randomising it *across* nets gives the set of different simulators
-  the paper trains its policies over.
+* ``data``: per net k (0-4) a paired set from the ``physical`` ultrasound model on phantoms
+  1000-1004 (``train`` / ``test`` split: the last 12.5 % of each phantom's poses) and a set on
+  the unseen phantom 1005 (all ``test``), at 100 x 75 px and 1 mm pixels: the field of view of
+  the envs' 2-D image (200 x 150 at 0.5 mm) and, within 1 mm, of the surgery volume's slices
+  (50 x 37 at 2 mm), at half the 2-D image's resolution. Net k's pairs use one randomised
+  ``physical`` model (gain, PSF, attenuation) drawn from ``STYLE_SEED_BASE + k``, its own probe
+  poses (``rng_seed = k``) and its own init / batch order (``seed = k``). A deterministic
+  generator cannot learn a gain it does not see in the CT, so randomising physics *within* a
+  net's data only averages it away; randomising it *across* nets gives the set of different
+  simulators the paper trains its policies over.
 * ``train``: ``train_pix2pix`` with ``TRAIN`` settings, one net after the other.
 * ``ship``: copies the generators to the package's ``weights/net{k}.pt`` (without local
   paths).
@@ -91,7 +91,7 @@ def ship(work: Path, dest: Path | None = None, nets=range(NUM_NETS)) -> list[Pat
         src = run_dir(work, k) / "generator.pt"
         ck = read_checkpoint(src)
         ck["data"] = (
-            f"sonogym.learned_training.recipe net {k}: physical preset, style seed "
+            f"sonogym.learned_training.recipe net {k}: physical ultrasound model, style seed "
             f"{STYLE_SEED_BASE + k}, phantoms {TRAIN_PHANTOMS[0]}-{TRAIN_PHANTOMS[-1]}"
         )
         ck["net"] = k

@@ -10,10 +10,11 @@ Typical use::
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.protocol import UltrasoundSimulator
 from sonogym.ultrasound.simulator import (
-    PRESETS,
+    US_MODELS,
     ModelBasedSimulator,
     PhysicalModel,
     SonoGymModel,
+    deprecated_module_attribute,
     make_model,
 )
 from sonogym.ultrasound.slicer import Slicer, Slices
@@ -33,7 +34,6 @@ __all__ = [
     "GEL",
     "PHYSICAL_LABEL_TISSUE",
     "PHYSICAL_TISSUES",
-    "PRESETS",
     "SONOGYM_LABEL_TISSUE",
     "SONOGYM_TISSUES",
     "ModelBasedSimulator",
@@ -44,8 +44,13 @@ __all__ = [
     "SonoGymModel",
     "Tissue",
     "TissueTable",
+    "US_MODELS",
     "UltrasoundSimulator",
     "make_model",
     "physical_table",
     "sonogym_table",
 ]
+
+
+def __getattr__(name: str) -> dict[str, type]:
+    return deprecated_module_attribute(__name__, name)

@@ -5,25 +5,25 @@ Each env draws, at each episode reset, one setting of every knob below (uniform 
 from the env's seeded generator); the image of that episode is displayed with it:
 
 * ``gain_db``: gain added before the display mapping (dB);
-* ``dynamic_range_db``: the dB range mapped onto [0, 1] (the ``physical`` preset's is 60);
+* ``dynamic_range_db``: the dB range mapped onto [0, 1] (the ``physical`` model's is 60);
 * ``tgc_db``: the time-gain-compensation curve an operator sets: a gain at each of
   ``TGC_KNOTS`` depths (top, middle, bottom of the image), linear in between (dB);
 * ``attenuation_db_per_cm``: round-trip attenuation the TGC does not compensate (a patient whose
-  tissue attenuates more or less than the preset's 0.6 dB/cm/MHz: at 3.5 MHz, 0.2 dB/cm/MHz
-  more is 1.4 dB per cm of depth);
+  tissue attenuates more or less than the ``physical`` model's 0.6 dB/cm/MHz: at 3.5 MHz,
+  0.2 dB/cm/MHz more is 1.4 dB per cm of depth);
 * ``speckle_blur``: a coarser speckle grain: the envelope blended with its Gaussian smoothing
   (sigma ``SPECKLE_SIGMA``) by this weight (0 keeps the simulated grain);
 * ``depth``: imaging depth (m) shown over the image's rows, at most the probe's depth: the
   image is the top ``depth`` of the simulated one stretched over all rows (a shallower depth
   setting).
 
-With the ``physical`` preset the settings act on the TGC-compensated envelope before log
+With the ``physical`` model the settings act on the TGC-compensated envelope before log
 compression (``ModelBasedSimulator.simulate_raw``), exactly as on a scanner. With other
-simulators (the ``sonogym`` preset, the learned nets) they act on the display image read as a
+simulators (the ``sonogym`` model, the learned nets) they act on the display image read as a
 60 dB log display (dB = (y - 1) * 60); pixels at the display's floor stay there.
 
-Evaluation never randomises (envs default to ``imaging_randomization=False``); the ``cpu``
-training preset of navigation turns it on; the ``paper`` preset keeps the paper's fixed imaging.
+Evaluation never randomises (envs default to ``imaging_randomization=False``), and neither do
+the training presets: a run asks for it with ``--env-option imaging_randomization=true``.
 """
 
 from __future__ import annotations
@@ -119,9 +119,9 @@ def randomized_display(
     gain_db: float = 0.0,
 ) -> torch.Tensor:
     """Display images (N, E, H, W) in [0, 1] from TGC-compensated envelopes (the ``physical``
-    preset's ``simulate_raw``) with per-image ``settings`` (N, 8): the scanner's mapping
+    model's ``simulate_raw``) with per-image ``settings`` (N, 8): the scanner's mapping
     y = clamp(1 + (20 log10 envelope + gain + TGC(d) - attenuation d) / DR, 0, 1) after the
-    speckle blend, then the depth zoom. ``gain_db``: the preset's own gain."""
+    speckle blend, then the depth zoom. ``gain_db``: the model's own gain."""
     env = _blend_speckle(envelope, settings[:, 6], probe)
     db = 20.0 * torch.log10(env.clamp_min(1e-30))
     return _finish(db + gain_db, settings, probe)

@@ -1,11 +1,11 @@
 """Model-based ultrasound simulation from CT and label slices (the paper's appendix model).
 
-``ModelBasedSimulator(preset).simulate(slices)`` turns the slicer's CT + label samples into
+``ModelBasedSimulator(model).simulate(slices)`` turns the slicer's CT + label samples into
 B-mode images in [0, 1], batched over envs and elevation slices, with the same code on CPU and
 CUDA. Every image is a function of its slices and its patient-fixed speckle only: the same pose
 gives the same image, and the result does not depend on the batch it was computed in.
 
-Two presets (DESIGN.md §5, §6):
+Two ultrasound models (DESIGN.md §5, §6):
 
 ``sonogym`` -- the reference implementation's CT-mode model, exactly
 (reference_implementation.md §1.7-§1.8), with its constants restated in physical units so that
@@ -63,7 +63,9 @@ cache, and with more than one torch thread the chunks run on that many threads a
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 
@@ -100,7 +102,7 @@ _BLOCK = 60.0
 #: Largest attenuation exponent kept: exp(-40) ~ 4e-18 is black, and clamping keeps products
 #: clear of float32 denormals (which are ~50x slower on CPU).
 _MAX_EXPONENT = 40.0
-#: Same for the physical preset's amplitudes, which get squared: e^-20 is -174 dB, far below
+#: Same for the physical model's amplitudes, which get squared: e^-20 is -174 dB, far below
 #: the display's floor, and its square stays a normal float32.
 _MAX_LOG_AMPLITUDE = 20.0
 _LOG2_E = 1.0 / math.log(2.0)
@@ -108,7 +110,7 @@ _LOG2_E = 1.0 / math.log(2.0)
 
 @dataclass(frozen=True, eq=False)
 class SonoGymModel:
-    """The ``sonogym`` preset: the reference's CT-mode model (values from
+    """The ``sonogym`` model: the reference's CT-mode model (values from
     reference_implementation.md §1.1, §1.7, §1.8, in physical units)."""
 
     e_s_ratio: float = 20.0  # weight of the reflection term
@@ -138,7 +140,7 @@ class SonoGymModel:
 
 @dataclass(frozen=True, eq=False)
 class PhysicalModel:
-    """The ``physical`` preset: the paper's full model with literature acoustics.
+    """The ``physical`` model: the paper's full model with literature acoustics.
 
     The centre frequency is 3.5 MHz, a lumbar curvilinear probe's (2-5 MHz reach the 6-8 cm
     lamina depth; ultrasound_physics.md §2): a 10 MHz linear probe would lose 60+ dB in muscle
@@ -182,22 +184,66 @@ class PhysicalModel:
         return self.wavelength * self.f_number / 2.3548
 
 
-PRESETS: dict[str, type] = {"physical": PhysicalModel, "sonogym": SonoGymModel}
+#: The model-based ultrasound models by name.
+US_MODELS: dict[str, type] = {"physical": PhysicalModel, "sonogym": SonoGymModel}
 
 
-def make_model(preset: str | SonoGymModel | PhysicalModel) -> SonoGymModel | PhysicalModel:
-    """A preset's model from its name (or pass a configured model through)."""
-    if isinstance(preset, (SonoGymModel, PhysicalModel)):
-        return preset
-    if preset not in PRESETS:
-        raise ValueError(f"unknown ultrasound preset {preset!r}; known presets: {sorted(PRESETS)}")
-    return PRESETS[preset]()
+def _renamed_preset(owner: str, model, preset, default=None):
+    """``model``, or ``preset`` where a caller still uses the keyword's former name (warned)."""
+    if preset is None:
+        return model
+    warnings.warn(
+        f"{owner}(preset=...) is deprecated: use model=...", DeprecationWarning, stacklevel=3
+    )
+    if model != default and model != preset:
+        raise TypeError(f"{owner}: model={model!r} and preset={preset!r} differ: give model only")
+    return preset
+
+
+def make_model(
+    model: str | SonoGymModel | PhysicalModel | None = None,
+    *,
+    preset: str | SonoGymModel | PhysicalModel | None = None,
+) -> SonoGymModel | PhysicalModel:
+    """An ultrasound model from its name (or pass a configured model through). ``preset``:
+    deprecated name of ``model``."""
+    model = _renamed_preset("make_model", model, preset)
+    if isinstance(model, (SonoGymModel, PhysicalModel)):
+        return model
+    if model not in US_MODELS:
+        raise ValueError(f"unknown ultrasound model {model!r}; known models: {sorted(US_MODELS)}")
+    return US_MODELS[model]()
+
+
+def deprecated_module_attribute(module: str, name: str, stacklevel: int = 3) -> dict[str, type]:
+    """``PRESETS``, the name of ``US_MODELS`` before "preset" meant the device preset only
+    (warned, pointing at the caller of the module's ``__getattr__``)."""
+    if name != "PRESETS":
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+    warnings.warn(f"{module}.PRESETS is deprecated: use US_MODELS", DeprecationWarning, stacklevel)
+    return US_MODELS
+
+
+def __getattr__(name: str) -> dict[str, type]:
+    return deprecated_module_attribute(__name__, name)
 
 
 def _large_scale_block(h: int, w: int, dz: float, dx: float, limit: float = 2.5e-3) -> int:
     """Largest common divisor k of h and w with k pixels <= ``limit`` metres."""
     g = math.gcd(h, w)
     return max(k for k in range(1, g + 1) if g % k == 0 and (k == 1 or k * max(dz, dx) <= limit))
+
+
+class _Chunk(NamedTuple):
+    """Part of a batch, as a model's chunk step takes it."""
+
+    ct: torch.Tensor  # (B, H, W) float32, HU
+    lab: torch.Tensor  # (B, H, W) int32 labels, air in the gel band read as GEL (workspace)
+    geom: tuple  # per image: origin, row step, column step (m), speckle and large-scale keys
+    k: dict  # the probe's constants (``_constants``)
+    display: bool  # map to the display range [0, 1] (else the raw image)
+    out: torch.Tensor  # (B, H, W) float32, the images
+    ws: Workspace  # the chunk's scratch buffers
 
 
 def _buf(ws: Workspace, name: str, like: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
@@ -209,20 +255,22 @@ class ModelBasedSimulator:
     """Model-based ultrasound simulator (``UltrasoundSimulator`` protocol).
 
     Args:
-        preset: "physical", "sonogym", or a configured ``PhysicalModel``/``SonoGymModel``.
+        model: "physical", "sonogym", or a configured ``PhysicalModel``/``SonoGymModel``.
         device: where the lookup tables live; slices on another device are rejected.
         chunk_pixels: pixels processed per chunk (CPU cache blocking); default 2**19 on CPU,
             everything at once on CUDA.
+        preset: deprecated name of ``model``.
     """
 
     def __init__(
         self,
-        preset: str | SonoGymModel | PhysicalModel = "physical",
+        model: str | SonoGymModel | PhysicalModel = "physical",
         device: torch.device | str = "cpu",
         chunk_pixels: int | None = None,
+        *,
+        preset: str | SonoGymModel | PhysicalModel | None = None,
     ) -> None:
-        self.model = make_model(preset)
-        self.preset = self.model.name
+        self.model = make_model(_renamed_preset("ModelBasedSimulator", model, preset, "physical"))
         self.device = torch.device(device)
         if chunk_pixels is None:
             chunk_pixels = 2**19 if self.device.type == "cpu" else 2**40
@@ -235,6 +283,14 @@ class ModelBasedSimulator:
         pairs = torch.stack(torch.meshgrid(q, q, indexing="ij"), 0).reshape(2, -1)
         self._gauss_pairs = pairs.contiguous().to(self.device)
         self._chunks = ChunkRunner(self.device)  # scratch buffers, one set per worker thread
+
+    @property
+    def preset(self) -> str:
+        """Deprecated: the model's name, ``model.name``."""
+        warnings.warn(
+            "ModelBasedSimulator.preset is deprecated: use .model.name", DeprecationWarning, 2
+        )
+        return self.model.name
 
     @property
     def nbytes(self) -> int:
@@ -368,7 +424,8 @@ class ModelBasedSimulator:
 
         def run(sl: slice, ws: Workspace) -> None:
             geom = (origin[sl], row[sl], col[sl], mix[sl], mix_ls[sl])
-            chunk(ct[sl], lab[sl], geom, k, display, flat[sl], ws)
+            labels = self._labels(lab[sl], k, ws)
+            chunk(_Chunk(ct[sl], labels, geom, k, display, flat[sl], ws))
 
         self._chunks.run(run, [slice(s, min(b_all, s + step)) for s in range(0, b_all, step)])
         return out
@@ -416,18 +473,9 @@ class ModelBasedSimulator:
         return amp, bits
 
     # ------------------------------------------------------------- sonogym
-    def _sonogym_chunk(
-        self,
-        ct: torch.Tensor,
-        lab8: torch.Tensor,
-        geom: tuple,
-        k: dict,
-        display: bool,
-        out: torch.Tensor,
-        ws: Workspace,
-    ) -> None:
+    def _sonogym_chunk(self, chunk: _Chunk) -> None:
         m: SonoGymModel = self.model  # type: ignore[assignment]
-        lab = self._labels(lab8, k, ws)
+        ct, lab, geom, k, display, out, ws = chunk
         g = k["gel_rows"]
         # Attenuation, inclusive of the current pixel: A_B = exp(-sum (alpha - beta_B) dz).
         a_b = _buf(ws, "a", ct)
@@ -469,18 +517,9 @@ class ModelBasedSimulator:
             torch.add(back, refl, alpha=m.e_s_ratio, out=out)
 
     # ------------------------------------------------------------ physical
-    def _physical_chunk(
-        self,
-        ct: torch.Tensor,
-        lab8: torch.Tensor,
-        geom: tuple,
-        k: dict,
-        display: bool,
-        out: torch.Tensor,
-        ws: Workspace,
-    ) -> None:
+    def _physical_chunk(self, chunk: _Chunk) -> None:
         m: PhysicalModel = self.model  # type: ignore[assignment]
-        lab = self._labels(lab8, k, ws)
+        ct, lab, geom, k, display, out, ws = chunk
         g = k["gel_rows"]
         z_gel = k["z_gel"]
         flat_lab = lab.view(-1)

@@ -14,8 +14,8 @@ k x k pixel blocks, k = floor(voxel / pixel), at the block centres, and upsample
 grid: bilinearly for CT, by block replication for labels (so each pixel takes the label of the
 sample nearest to it, at most (k - 1) / 2 pixels away). Trilinear interpolation of a voxel grid
 has no detail finer than a voxel, so this is 4x cheaper at k = 2 and indistinguishable in the
-``physical`` preset's images (image correlation > 0.97 with direct sampling,
-tests/ultrasound/test_slicer.py). The ``sonogym`` preset squares per-pixel CT jumps, so its bone
+``physical`` model's images (image correlation > 0.97 with direct sampling,
+tests/ultrasound/test_slicer.py). The ``sonogym`` model squares per-pixel CT jumps, so its bone
 lines change brightness with how an edge's ramp is sampled (as the reference's did with its
 nearest-voxel lookup): same structures, correlation > 0.9, line brightness within ~30 %.
 ``upsample=False`` samples every pixel directly.

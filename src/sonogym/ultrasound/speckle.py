@@ -80,53 +80,6 @@ def seed_mix(seed: torch.Tensor, salt: int = 0) -> torch.Tensor:
     return x ^ _shift_right(x, 31)
 
 
-def packed_coordinates(
-    origin: torch.Tensor,
-    row_step: torch.Tensor,
-    col_step: torch.Tensor,
-    height: int,
-    width: int,
-    cell: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Row and column parts of the packed fixed-point lattice coordinates.
-
-    Args:
-        origin: (B, 3) position of pixel (0, 0), metres (float64).
-        row_step, col_step: (B, 3) displacement per row / column, metres.
-        height, width: image size in pixels.
-        cell: lattice spacing, metres.
-
-    Returns:
-        rows (B, H) and cols (B, W) int64 such that ``(rows[:, :, None] + cols[:, None, :]) &
-        INT_MASK`` identifies the lattice point nearest to every pixel.
-    """
-    dev = origin.device
-    o = origin.double() / cell
-    r = row_step.double() / cell
-    c = col_step.double() / cell
-    j = torch.arange(height, dtype=torch.float64, device=dev)
-    i = torch.arange(width, dtype=torch.float64, device=dev)
-    a = o[:, None, :] + j[None, :, None] * r[:, None, :] + (0.5 + _OFFSET)  # (B, H, 3)
-    b = i[None, :, None] * c[:, None, :]  # (B, W, 3)
-    bmin = b.amin(1, keepdim=True)
-    a = a + bmin
-    b = b - bmin
-    scale = float(2**FRAC_BITS)
-    afx = torch.floor(a * scale).long()
-    bfx = torch.floor(b * scale).long()
-    lo = afx.amin()
-    hi = afx.amax(1).unsqueeze(1) + bfx.amax(1).unsqueeze(1)
-    expect_all(
-        (lo >= 0) & (hi.max() < _FIELD_MAX),
-        "speckle: pixel positions lie beyond the noise lattice's range "
-        f"(+-{_OFFSET * cell:.2f} m around the patient origin)",
-    )
-    shifts = (2 * FIELD_BITS, FIELD_BITS, 0)
-    rows = sum(afx[..., k] << s for k, s in enumerate(shifts))
-    cols = sum(bfx[..., k] << s for k, s in enumerate(shifts))
-    return rows, cols
-
-
 def hash_bits(
     rows: torch.Tensor,
     cols: torch.Tensor,
@@ -169,8 +122,42 @@ def lattice_bits(
     tmp: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(B, H, W) int32 random values, a function of each pixel's nearest lattice point and the
-    image's seed only."""
-    rows, cols = packed_coordinates(origin, row_step, col_step, height, width, cell)
+    image's seed only.
+
+    Args:
+        origin: (B, 3) position of pixel (0, 0), metres (float64).
+        row_step, col_step: (B, 3) displacement per row / column, metres.
+        height, width: image size in pixels.
+        cell: lattice spacing, metres.
+        mix: (B,) mixed seeds (``seed_mix``).
+        out, tmp: optional (B, H, W) int32 and int64 buffers (``hash_bits``).
+    """
+    # Packed fixed-point lattice coordinates: rows (B, H) and cols (B, W) int64 such that
+    # (rows[:, :, None] + cols[:, None, :]) & _INT_MASK identifies every pixel's lattice point.
+    dev = origin.device
+    o = origin.double() / cell
+    r = row_step.double() / cell
+    c = col_step.double() / cell
+    j = torch.arange(height, dtype=torch.float64, device=dev)
+    i = torch.arange(width, dtype=torch.float64, device=dev)
+    a = o[:, None, :] + j[None, :, None] * r[:, None, :] + (0.5 + _OFFSET)  # (B, H, 3)
+    b = i[None, :, None] * c[:, None, :]  # (B, W, 3)
+    bmin = b.amin(1, keepdim=True)
+    a = a + bmin
+    b = b - bmin
+    scale = float(2**FRAC_BITS)
+    afx = torch.floor(a * scale).long()
+    bfx = torch.floor(b * scale).long()
+    lo = afx.amin()
+    hi = afx.amax(1).unsqueeze(1) + bfx.amax(1).unsqueeze(1)
+    expect_all(
+        (lo >= 0) & (hi.max() < _FIELD_MAX),
+        "speckle: pixel positions lie beyond the noise lattice's range "
+        f"(+-{_OFFSET * cell:.2f} m around the patient origin)",
+    )
+    shifts = (2 * FIELD_BITS, FIELD_BITS, 0)
+    rows = sum(afx[..., k] << s for k, s in enumerate(shifts))
+    cols = sum(bfx[..., k] << s for k, s in enumerate(shifts))
     return hash_bits(rows, cols, mix, out, tmp)
 
 

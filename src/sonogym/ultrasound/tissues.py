@@ -1,11 +1,11 @@
-"""Label -> tissue tables and the two presets' acoustic parameters, as documented data.
+"""Label -> tissue tables and the two ultrasound models' acoustic parameters, as documented data.
 
 Every label id the patient model uses (``sonogym.anatomy.labels``: background 0, TotalSegmentator
-v2 ids 1-117, project ids 118-124) maps to one tissue in each preset; ``GEL`` (255) is a pseudo
+v2 ids 1-117, project ids 118-124) maps to one tissue in each model; ``GEL`` (255) is a pseudo
 label the simulator gives to air in the first millimetres under the probe face (coupling gel).
 Ids the tables do not list (125-254) image as generic soft tissue.
 
-``sonogym`` preset (reference_implementation.md §1.2-§1.3): the reference's ImFusion-style tissue
+``sonogym`` model (reference_implementation.md §1.2-§1.3): the reference's ImFusion-style tissue
 ids with its parameters copied exactly, and the *intended* TotalSegmentator -> tissue mapping of
 its ``label_conversion.yaml`` (liver -> 11, kidneys -> 6, ...), not the chained in-place
 relabelling that sent liver and kidneys to "lung". Its attenuation ``alpha`` is in the
@@ -15,9 +15,9 @@ body label 120); intervertebral discs -> 12 (the reference has no disc label: di
 its body label); spinal canal -> 10 (the reference's spinal-cord tissue, which is what
 TotalSegmentator's spinal_cord mask covers in the lumbar canal); spinal ligaments and the
 thoracolumbar fascia -> 12 (the reference has no ligament tissue; their echo comes from their CT
-contrast with fat and muscle, which the preset's CT-based reflection sees).
+contrast with fat and muscle, which the model's CT-based reflection sees).
 
-``physical`` preset (ultrasound_physics.md §1): literature impedance (MRayl) and attenuation
+``physical`` model (ultrasound_physics.md §1): literature impedance (MRayl) and attenuation
 (dB/cm/MHz); scattering mu0 / mu1 / sigma0 with the paper's meaning (scatterer amplitude
 mu0 + sigma0 * N0 where N1 <= mu1), chosen so that parenchyma gives fully developed speckle
 (mu1 = 2: 98 % of pixels scatter) and fluids are near-anechoic; ``hu`` is the tissue's nominal
@@ -44,7 +44,7 @@ class Tissue:
     Attributes:
         alpha: attenuation; ``physical``: dB/cm/MHz (one way, amplitude); ``sonogym``: the
             reference's units (decay exp(-0.02 * alpha * dz / mm)).
-        impedance: acoustic impedance, MRayl (unused by the ``sonogym`` preset, whose impedance
+        impedance: acoustic impedance, MRayl (unused by the ``sonogym`` model, whose impedance
             comes from the CT; kept as the reference's data).
         mu0: mean scatterer amplitude.
         mu1: scatterer density threshold on a standard normal N1 (density = Phi(mu1)).
@@ -217,7 +217,7 @@ def impedance_of_hu(hu: torch.Tensor) -> torch.Tensor:
 
 
 class TissueTable:
-    """A preset's label -> tissue map and tissue parameters, answered as per-label lookups.
+    """A model's label -> tissue map and tissue parameters, answered as per-label lookups.
 
     ``column(name)`` returns a (256,) float64 tensor indexed by label id, so a whole label slice
     is looked up with one gather (``torch.take(column, labels.long())``).
@@ -264,10 +264,10 @@ class TissueTable:
 
 
 def sonogym_table() -> TissueTable:
-    """The ``sonogym`` preset's table (the reference's tissues, intended mapping)."""
+    """The ``sonogym`` model's table (the reference's tissues, intended mapping)."""
     return TissueTable(SONOGYM_LABEL_TISSUE, SONOGYM_TISSUES, SONOGYM_DEFAULT_TISSUE, "sonogym")
 
 
 def physical_table() -> TissueTable:
-    """The ``physical`` preset's table (literature acoustics)."""
+    """The ``physical`` model's table (literature acoustics)."""
     return TissueTable(PHYSICAL_LABEL_TISSUE, PHYSICAL_TISSUES, PHYSICAL_DEFAULT_TISSUE, "physical")

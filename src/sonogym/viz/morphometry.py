@@ -138,7 +138,7 @@ def label_rgb(labels: np.ndarray) -> np.ndarray:
 
 
 def save_figure(phantom, real, values: tuple[dict, dict], bounds: dict, path: Path) -> Path:
-    """Label slice and ultrasound (``physical`` preset) of the transverse and sagittal L4 goal
+    """Label slice and ultrasound (``physical`` model) of the transverse and sagittal L4 goal
     views, phantom beside the real subject, and their bone-hit profiles (``values``: the
     phantom's and the real subject's flat measurements) against the population's 5-95 % band."""
     import matplotlib

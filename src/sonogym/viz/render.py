@@ -19,8 +19,7 @@ import torch
 
 from sonogym.anatomy.patient import Patient
 from sonogym.ultrasound.probe import ProbeGeometry
-from sonogym.ultrasound.simulator import PRESETS as US_MODELS
-from sonogym.ultrasound.simulator import ModelBasedSimulator
+from sonogym.ultrasound.simulator import US_MODELS, ModelBasedSimulator
 from sonogym.ultrasound.slicer import Slicer, Slices
 
 #: Surface pose: x (m), z (m), yaw (rad), tilt (rad).

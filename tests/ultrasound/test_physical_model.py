@@ -1,4 +1,4 @@
-"""Realism checks of the ``physical`` preset (ultrasound_physics.md §0, §2)."""
+"""Realism checks of the ``physical`` model (ultrasound_physics.md §0, §2)."""
 
 import dataclasses
 import math

@@ -1,4 +1,4 @@
-"""The ``sonogym`` preset against the reference's model (reference_implementation.md §1.7-§1.8),
+"""The ``sonogym`` model against the reference's model (reference_implementation.md §1.7-§1.8),
 recomputed here by hand with numpy on tiny inputs, term by term."""
 
 import dataclasses
@@ -196,8 +196,8 @@ def test_air_gap_blocks_the_beam():
     assert off[0, 0, 21:].abs().max() < 1e-6  # nothing below the gap (rows >= 10 mm)
 
 
-@pytest.mark.parametrize("preset", ["sonogym", "physical"])
-def test_coarser_probe_images_tissue_the_same_way(preset):
+@pytest.mark.parametrize("model", ["sonogym", "physical"])
+def test_coarser_probe_images_tissue_the_same_way(model):
     """Physical units: a 2 mm probe sees soft tissue and a bone line like the 0.5 mm one."""
     p = layered_patient([(0.025, SOFT), (0.01, BONE), (0.03, SOFT)], size_xz=(0.2, 0.2))
     sl_fine = Slicer(p)
@@ -206,7 +206,7 @@ def test_coarser_probe_images_tissue_the_same_way(preset):
     pos, rot = straight_down(
         10, x=torch.linspace(-0.03, 0.03, 10), z=torch.linspace(-0.03, 0.03, 10)
     )
-    sim = ModelBasedSimulator(preset)
+    sim = ModelBasedSimulator(model)
     fine = sim.simulate_raw(sl_fine(pos, rot))[:, 0]
     crs = sim.simulate_raw(sl_coarse(pos, rot))[:, 0]
     soft_f = fine[:, 14:44, 20:130].mean()  # 7-22 mm

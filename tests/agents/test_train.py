@@ -184,7 +184,7 @@ def test_cli_train_and_refusal(tmp_path):
         # distance penalty and action box; recorded for eval and resume
         "w5": 20,
         "unsafe_distance_penalty": 100.0,
-        "action_limit": [0.005, 0.005, 0.01, 0.02, 0.02, 0.02],
+        "action_limit": [0.005, 0.005, 0.01, 0.02, 0.02, 0.001],
         "unsafe_penalty": 0.5,
     }
 

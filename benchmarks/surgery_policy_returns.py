@@ -2,9 +2,10 @@
 still, unit-noise actions, backing out of or leaving the corridor, pushing along the drill
 axis. The table in docs/envs.md ("Deviation from the paper's 0 otherwise") comes from
 
-    python benchmarks/surgery_policy_returns.py [spacing_m=0.001] [seed=0] [w5_per_rad=5]
+    python benchmarks/surgery_policy_returns.py [spacing_m=0.001] [seed=0] [w5_per_rad=5] [k=0]
 
-(w5 = 50: the weight the ``cpu`` training preset trains surgery with.)
+(w5 = 50, k = 100: the tilt weight and the unsafe distance penalty the ``cpu`` training preset
+trains surgery with.)
 """
 
 import sys
@@ -37,6 +38,7 @@ POLICIES = {
     "expert": lambda info, g, mem: surgery_expert(info["state"], info["radius"]),
     "standing still": lambda info, g, mem: torch.zeros(N, 6),
     "unit-noise actions": lambda info, g, mem: torch.randn(N, 6, generator=g),
+    "expert, then stop at p_l": then(-0.052, torch.zeros(N, 6)),
     "expert, then back out": then(-0.005, unit(2, -0.05)),
     "expert, then out sideways": then(-0.02, unit(0, 0.1)),
     "push along the drill axis": lambda info, g, mem: unit(2, 0.3),
@@ -48,7 +50,10 @@ def main() -> None:
     spacing = float(sys.argv[1]) if len(sys.argv) > 1 else 0.001
     seed = int(sys.argv[2]) if len(sys.argv) > 2 else 0
     w5 = float(sys.argv[3]) if len(sys.argv) > 3 else 5.0
-    env = make_vec("surgery", N, obs_mode="state", phantom_spacing=spacing, w5=w5)
+    k = float(sys.argv[4]) if len(sys.argv) > 4 else 0.0
+    env = make_vec(
+        "surgery", N, obs_mode="state", phantom_spacing=spacing, w5=w5, unsafe_distance_penalty=k
+    )
     print("| policy | return | safe ratio | insertion mm | side mm |\n|---|---|---|---|---|")
     for name, policy in POLICIES.items():
         _, info = env.reset(seed=seed)

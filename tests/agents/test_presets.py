@@ -58,13 +58,19 @@ def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
 
     assert SurgeryConfig().w5 == 5.0
     cpu = resolve_train_config("surgery", "ppo", preset="cpu")
-    recipe = {"w5": 50.0, "unsafe_distance_penalty": 100.0}
+    box = (0.005, 0.005, 0.01, 0.02, 0.02, 0.001)  # m x3, rad x3: what the drill arm realises
+    recipe = {"w5": 50.0, "unsafe_distance_penalty": 100.0, "action_limit": box}
     assert cpu.rl.env_kwargs == get_task("surgery").training.env_kwargs_cpu == recipe
     assert resolve_train_config("surgery", "ppo", preset="paper").rl.env_kwargs == {}
     given = resolve_train_config(
         "surgery", "ppo", preset="cpu", env_kwargs={"w5": 5.0, "obs_mode": "state"}
     )
-    assert given.rl.env_kwargs == {"w5": 5.0, "unsafe_distance_penalty": 100.0, "obs_mode": "state"}
+    assert given.rl.env_kwargs == {
+        "w5": 5.0,
+        "unsafe_distance_penalty": 100.0,
+        "action_limit": box,
+        "obs_mode": "state",
+    }
     nav = resolve_train_config("navigation", "ppo", preset="cpu")
     assert nav.rl.env_kwargs == {}
     assert resolve_train_config("reconstruction", "ppo", preset="cpu").rl.env_kwargs == {}

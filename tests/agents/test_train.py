@@ -181,9 +181,10 @@ def test_cli_train_and_refusal(tmp_path):
         "patients": [0],
         "phantom_spacing": 0.002,
         # --env-option overrides the cpu preset's w5 = 50 and adds its own beside the preset's
-        # distance penalty; recorded for eval and resume
+        # distance penalty and action box; recorded for eval and resume
         "w5": 20,
         "unsafe_distance_penalty": 100.0,
+        "action_limit": [0.005, 0.005, 0.01, 0.02, 0.02, 0.001],
         "unsafe_penalty": 0.5,
     }
 

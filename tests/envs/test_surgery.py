@@ -628,3 +628,52 @@ def test_corridor_damping_slows_lateral_and_rotational_motion_inside_c_drill():
         moved[damping] = float((info["state"][0, :2] - before).norm())
     assert moved[0.2] == pytest.approx(0.2 * moved[1.0], rel=0.05)
     assert moved[1.0] == pytest.approx(0.002, rel=0.05)  # 0.02 units x 0.1 m
+
+
+def test_cpu_preset_action_box_is_one_the_drill_arm_realises():
+    """The cpu preset's per-step action box: each component at its limit is realised in one
+    control step, and at any corner the axial command keeps most of its motion. Under the
+    reference's box (30 mm, 0.1 rad: 18-62 % of a lone component realised, 8 % of the axial
+    push at the worst corner) the joint speed limits scale a command down whole, so saturated
+    lateral or rotation commands froze the drill above p_l and a trained seed hovered there."""
+    import itertools
+
+    from sonogym.agents.configs import resolve_train_config
+
+    preset = resolve_train_config("surgery", "ppo", preset="cpu").rl.env_kwargs
+    n = 32
+    env = _env(n, obs_mode="state", **preset)
+    _, info = env.reset(seed=0)
+    for _ in range(100):  # the expert's approach, held 10 mm above p_l (in C_free)
+        a = surgery_expert(info["state"], info["radius"])
+        a = torch.where((info["state"][:, 2] > -L - 0.01)[:, None], torch.zeros_like(a), a)
+        _, _, _, _, info = env.step(a)
+    assert bool((info["region"] == FREE).all())
+    start = (env.scene.q_drill.clone(), env.scene.tip_pos.clone(), env.scene.tip_rot.clone())
+    state, region = env._state.clone(), env._region.clone()
+    high = torch.as_tensor(env.single_action_space.high)
+
+    def step_from_start(action):
+        env.scene.q_drill, env.scene.tip_pos, env.scene.tip_rot = (t.clone() for t in start)
+        env._state, env._region = state.clone(), region.clone()
+        env.scene.drill_arm._last_frames = None
+        _, _, _, _, out = env.step(action)
+        return out
+
+    limit = env.cfg.action_limit
+    for i in range(6):  # one component at its limit, the others 0: realised in full
+        a = torch.zeros(n, 6)
+        a[:, i] = high[i]
+        step_from_start(a)
+        if i < 3:
+            moved = (env.scene.tip_pos - start[1]).norm(dim=-1)
+        else:
+            rel = start[2].transpose(-1, -2) @ env.scene.tip_rot
+            moved = axis_angle_from_matrix(rel).norm(dim=-1)
+        assert float(moved.min()) > 0.99 * limit[i], (i, float(moved.min()))
+    # every sign pattern of the other five at their limits, full axial push
+    signs = torch.tensor(list(itertools.product([-1.0, 1.0], repeat=5)))
+    a = high.repeat(n, 1)
+    a[:, [0, 1, 3, 4, 5]] *= signs
+    axial = step_from_start(a)["state"][:, 2] - state[:, 2]
+    assert float(axial.mean()) > 0.7 * limit[2] and float(axial.min()) > 0.4 * limit[2]

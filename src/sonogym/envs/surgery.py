@@ -83,7 +83,9 @@ that a policy learns to stay out of the corridor.
 Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
 The ``cpu`` training preset trains with w5 = 50 per rad (``SPEC.training.env_kwargs_cpu``): at
 the paper's 5, 4 deg of tilt cost what 1.2 mm of insertion earns, too little to make a policy
-hold the drill aligned (docs/envs.md, "Tilt weight of the cpu training preset").
+hold the drill aligned (docs/envs.md, "Tilt weight of the cpu training preset"), and with
+``CPU_ACTION_LIMIT``, a per-step box the drill arm realises in one step (docs/envs.md, "Action
+box of the cpu training preset").
 
 **Randomizations.** Probe: surface (x, z) uniform in +-5 mm around its nominal point, settled
 by IK (``obs_mode="state"`` observes no image: there the offset is drawn, so every mode gets the
@@ -154,6 +156,13 @@ TRAIN_JOINT_NOISE = (0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1)
 DATA_COLLECTION_JOINT_NOISE = (0.3, 0.25, 0.2, 0.2, 0.2, 0.2, 0.1)
 
 _START_REDRAWS = 20
+
+#: The ``cpu`` training preset's per-step action limit (m x3, rad x3): what the drill arm
+#: realises in one control step from the corridor's approach (a larger command is slowed whole
+#: by the joint speed limits, its axial part too); the spin about the drill axis almost off:
+#: the drill is symmetric, so spinning earns nothing, but it turns the observed x_D, and a
+#: trained policy that kept spinning drifted out of the corridor late in its episodes.
+CPU_ACTION_LIMIT = (0.005, 0.005, 0.01, 0.02, 0.02, 0.001)
 
 
 @dataclass(frozen=True)
@@ -660,7 +669,16 @@ SPEC = TaskSpec(
         # the distance penalty for unsafe steps (k = 100 per m, capped at 10 mm) and the lean
         # network: with --obs-mode state, 120 k steps x 64 envs reach docs/results.md's Table 1
         # row in ~30 CPU min
-        env_kwargs_cpu={"w5": 50.0, "unsafe_distance_penalty": 100.0},
+        # ... and a per-step action box the KUKA realises in one control step (5 mm lateral,
+        # 10 mm axial, 0.02 rad tilt, 0.001 rad spin): under the reference's box (30 mm,
+        # 0.1 rad) a command the joint speeds cannot follow is scaled down whole, so saturated
+        # rotation or lateral commands froze the drill above p_l and a seed learned to hover
+        # there (docs/envs.md)
+        env_kwargs_cpu={
+            "w5": 50.0,
+            "unsafe_distance_penalty": 100.0,
+            "action_limit": CPU_ACTION_LIMIT,
+        },
         net_cpu="lean",
         timesteps_cpu=120_000,
         vector_splits={"pose": (("pos", 3), ("quat", 4))},

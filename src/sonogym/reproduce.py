@@ -162,7 +162,7 @@ _RECIPES = (
         (
             "sonogym train --task navigation --algo ppo --preset cpu --patients 100-131 "
             "--obs-mode us_heading --net lean --env-option imaging_randomization=true --seed 0 "
-            "--steps 17664 --checkpoint-every 2944 --out runs/nav-pop32-v2-s0",
+            "--steps 35328 --checkpoint-every 2944 --out runs/nav-pop32-v2-s0",
             "sonogym eval --run runs/nav-pop32-v2-s0 --envs 50 --protocol odt-patient --held-out 5",
             "sonogym eval --run runs/nav-pop32-v2-s0 --envs 50 "
             "--patients tests/data/totalsegmentator_example --name real-subject",
@@ -213,7 +213,7 @@ CPU_MINUTES: dict[str, float] = {
     "runs/nav-ppo-small-s0": 45.0,
     "runs/nav-ppo-small-lb-s0": 27.0,
     "runs/recon-ppo-small-s0": 27.0,
-    "runs/nav-pop32-v2-s0": 84.7,
+    "runs/nav-pop32-v2-s0": 178.6,
     "runs/sweep-nav-ppo": 15.0,
     "runs/sweep-nav-a2c": 5.0,
     "runs/ds-nav-mb-1000": 19.4,

@@ -41,7 +41,7 @@ from sonogym.geometry import matrix_from_axis_angle
 ENVS = 64
 POOL = 4  # the cpu preset's obs_downsample
 EXPERT_PULL, NOISE = 0.3, 1.5  # action units
-NEAR = 0.02  # m: frames this close to {G} in the frontal plane are scored
+NEAR = 0.02  # m: frames whose probe lies this close to {G} across the skin are scored
 # regression targets in units of order 1: goal x_U, y_U per 10 mm, rotation per 0.5 rad
 TARGET_SCALE = torch.tensor([100.0, 100.0, 2.0])
 

@@ -34,9 +34,9 @@ from torch import nn
 
 from sonogym.agents.adapter import ObsLayout
 from sonogym.agents.networks import Encoder
-from sonogym.envs.navigation import navigation_expert
+from sonogym.envs.navigation import expert, goal_in_probe
+from sonogym.envs.options import parse_patients
 from sonogym.envs.registry import make_vec
-from sonogym.geometry import matrix_from_axis_angle
 
 ENVS = 64
 POOL = 4  # the cpu preset's obs_downsample
@@ -44,13 +44,6 @@ EXPERT_PULL, NOISE = 0.3, 1.5  # action units
 NEAR = 0.02  # m: frames whose probe lies this close to {G} across the skin are scored
 # regression targets in units of order 1: goal x_U, y_U per 10 mm, rotation per 0.5 rad
 TARGET_SCALE = torch.tensor([100.0, 100.0, 2.0])
-
-
-def parse_patients(spec: str) -> list:
-    if spec.replace("-", "").isdigit():
-        a, _, b = spec.partition("-")
-        return list(range(int(a), int(b or a) + 1))
-    return [spec]
 
 
 def record(patients: list, steps: int, randomise: bool, seed: int) -> dict[str, torch.Tensor]:
@@ -65,14 +58,14 @@ def record(patients: list, steps: int, randomise: bool, seed: int) -> dict[str, 
     rows = {k: [] for k in ("image", "heading", "goal", "probe", "step")}
     for _ in range(steps):
         p, q = info["state"][:, :3], info["state"][:, 3:]
-        goal_u = -(matrix_from_axis_angle(q).transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1)
+        goal_u = goal_in_probe(info["state"])
         rows["image"].append(F.avg_pool2d(obs["image"].float(), POOL).half())
         rows["heading"].append(obs["heading"].float())
         rows["goal"].append(torch.stack([goal_u[:, 0], goal_u[:, 1], q[:, 2]], -1).float())
         rows["probe"].append(p[:, :2].float())  # across the skin: z_G is the beam
         # the step counter is 0 on a reset frame, whose info still holds the ended episode
         rows["step"].append(env.episode_length_buf.clone())
-        act = navigation_expert(info["state"]) * EXPERT_PULL
+        act = expert(env, info) * EXPERT_PULL
         act = act + NOISE * torch.randn(ENVS, 3, generator=g)
         obs, _, _, _, info = env.step(act.clamp(-2.0, 2.0))
     env.close()
@@ -149,7 +142,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.process_time()
-    train = record(parse_patients(args.train), args.steps, True, args.seed)
+    train = record(parse_patients([args.train]), args.steps, True, args.seed)
     x, y, _ = samples(train, args.history)
     model = fit(x, y, layout(train, args.history), args.epochs, args.seed)
     print(
@@ -161,11 +154,11 @@ def main() -> None:
     print("|---|---:|---|---:|---:|---:|---:|---|---:|---:|---:|")
     tests = {
         # the same phantoms on a new walk without randomisation: what the regressor learned
-        f"training phantoms {args.train}, new walk": parse_patients(args.train),
-        f"held-out phantoms {args.held_out}": parse_patients(args.held_out),
+        f"training phantoms {args.train}, new walk": parse_patients([args.train]),
+        f"held-out phantoms {args.held_out}": parse_patients([args.held_out]),
     }
     if args.real:
-        tests["real subject"] = [args.real]
+        tests["real subject"] = parse_patients([args.real])
     for name, patients in tests.items():
         r = score(model, *samples(record(patients, args.test_steps, False, 1000), args.history))
         print(

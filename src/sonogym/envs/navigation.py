@@ -108,6 +108,15 @@ def navigation_reward(
     return w1 * dp + q_before.norm(dim=-1) - q_after.norm(dim=-1)
 
 
+def goal_in_probe(state: torch.Tensor) -> torch.Tensor:
+    """The goal's origin seen from the probe, (N, 3) metres in {U}, from ``state`` (N, 6), the
+    pose of {U} in {G}: the inverse pose's position, -R_GU^T p."""
+    from sonogym.geometry import matrix_from_axis_angle
+
+    p, q = state[:, :3], state[:, 3:]
+    return -(matrix_from_axis_angle(q).transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1)
+
+
 def navigation_expert(
     state: torch.Tensor,
     gain: float = 0.2,
@@ -120,13 +129,9 @@ def navigation_expert(
     is the inverse pose: position -R_GU^T p and rotation -q; its x_U, y_U components and the
     rotation about z_U, in action units, times ``gain`` (rho1 < 1), clipped to the action box.
     """
-    from sonogym.geometry import matrix_from_axis_angle
-
-    p, q = state[:, :3], state[:, 3:]
-    r_gu = matrix_from_axis_angle(q)
-    goal_in_u = -(r_gu.transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1)
+    goal_in_u = goal_in_probe(state)
     scale = torch.tensor(action_scale, dtype=state.dtype, device=state.device)
-    err = torch.stack([goal_in_u[:, 0], goal_in_u[:, 1], q[:, 2]], -1)
+    err = torch.stack([goal_in_u[:, 0], goal_in_u[:, 1], state[:, 5]], -1)
     return (gain * err / scale).clamp(-action_bound, action_bound).float()
 
 

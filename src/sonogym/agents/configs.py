@@ -248,6 +248,10 @@ def resolve_train_config(
     given = {"num_envs": envs, "timesteps": steps, "net": net, "obs_downsample": obs_downsample}
     rl = dataclasses.replace(rl, **{k: v for k, v in given.items() if v is not None})
     rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, **lists_to_tuples(env_kwargs or {})})
+    mode = rl.env_kwargs.get("obs_mode", get_task(task).default_obs_mode)
+    if mode_scales := defaults.obs_scales_by_mode.get(mode):
+        scales = {**rl.learning.obs_scales, **mode_scales}
+        rl = dataclasses.replace(rl, learning=dataclasses.replace(rl.learning, obs_scales=scales))
     return TrainConfig(
         task=task,
         algo=algo,

@@ -40,7 +40,8 @@ class RunOptions:
     obs_downsample: int | None = _flag("Average-pool image observations by this factor.")
     obs_mode: str | None = _flag(
         "Observation: the task's default (images), or 'state' (the privileged state), 'ct' / "
-        "'labels' (navigation, surgery), 'us_heading' (navigation: image + the probe's yaw)."
+        "'labels' (navigation, surgery), 'us_heading' (navigation: image + the probe's yaw), "
+        "'us_memory' (navigation: us_heading + the image 30 steps back and the motion since)."
     )
     simulator: str | None = _flag("Ultrasound simulator: physical, sonogym or learned.")
     learned_nets: str | None = _flag(

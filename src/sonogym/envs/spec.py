@@ -258,6 +258,9 @@ class TrainingDefaults:
     net_cpu: str | None = None  # network size (None: the preset's, "small")
     timesteps_cpu: int | None = None  # env steps per env (None: ``timesteps``)
     vector_splits: dict[str, tuple[tuple[str, int], ...]] = field(default_factory=dict)
+    # per obs_mode, scales of the entries only that mode has (``learning.obs_scales`` applies
+    # to every mode, and names only entries every mode has)
+    obs_scales_by_mode: dict[str, dict[str, float]] = field(default_factory=dict)
     safety: SafetyParams | None = None  # tasks with a cost (ppo-sf, ppo-lag)
 
 

@@ -37,3 +37,17 @@ def test_legacy_flat_config_loads_as_the_same_run(tmp_path):
     assert TrainConfig.from_dict(legacy) == cfg
     (tmp_path / "config.json").write_text(json.dumps(legacy))
     assert load_train_config(tmp_path) == cfg
+
+
+def test_mode_only_observation_scales_join_the_learning_record_of_that_mode_only():
+    """``us_memory``'s motion (m) reaches the network per 10 mm; other modes, which have no
+    ``motion`` entry (the adapter refuses scales of unknown entries), keep the task's scales."""
+    memory = resolve_train_config(
+        "navigation", "ppo", preset="cpu", env_kwargs={"obs_mode": "us_memory"}
+    )
+    assert memory.rl.learning.obs_scales == {"motion": 100.0}
+    for mode in ("us_heading", None):
+        kwargs = {} if mode is None else {"obs_mode": mode}
+        cfg = resolve_train_config("navigation", "ppo", preset="cpu", env_kwargs=kwargs)
+        assert cfg.rl.learning is get_task("navigation").training.learning
+        assert "motion" not in cfg.rl.learning.obs_scales

@@ -206,6 +206,65 @@ def test_us_heading_observes_the_us_image_and_the_reached_yaw():
     assert float(h[:2, 0].max()) < -0.99 and float(h[2:, 0].min()) > 0.99
 
 
+def test_us_memory_observes_the_image_and_pose_memory_lag_steps_back():
+    """``us_memory``: channel 0 and heading[:2] are ``us_heading``'s; channel 1, heading[2:]
+    and the motion are the image (8 bits), heading and frontal-plane displacement of the
+    reached probe ``memory_lag`` steps earlier, or the episode's first until it is that old,
+    across in-step autoresets and partial resets."""
+    lag, n = 3, 2
+    env = NavigationEnv(n, obs_mode="us_memory", memory_lag=lag, episode_length=7, **FAST)
+    assert env.observation_space.contains({k: v.numpy() for k, v in env.reset(seed=1)[0].items()})
+
+    def current(obs):
+        x, z, yaw, _ = env.scene.measured_command()
+        return obs["image"][:, 0].clone(), torch.stack([x, z, yaw], -1)
+
+    obs, _ = env.reset(seed=1)
+    history = [current(obs)]  # per step since the last reset: (image, pose)
+    gen = torch.Generator().manual_seed(0)
+    for step in range(1, 16):
+        obs, *_ = env.step(torch.rand(n, 3, generator=gen) * 4 - 2)
+        if step == 10:  # a partial reset restarts env 1's memory only
+            obs, _ = env.reset(options={"reset_mask": torch.tensor([False, True])})
+        history.append(current(obs))
+        t = env.episode_length_buf
+        for i in range(n):
+            then = len(history) - 1 - min(int(t[i]), lag)
+            image_then, pose_then = history[then][0][i], history[then][1][i]
+            image_now, pose_now = history[-1][0][i], history[-1][1][i]
+            assert torch.equal(obs["image"][i, 0], image_now)
+            want = (image_then.clamp(0, 1) * 255).round() / 255
+            torch.testing.assert_close(obs["image"][i, 1], want, rtol=0, atol=1e-6)
+            heading = torch.stack([pose_now[2].cos(), pose_now[2].sin(),
+                                   pose_then[2].cos(), pose_then[2].sin()])  # fmt: skip
+            torch.testing.assert_close(obs["heading"][i], heading)
+            torch.testing.assert_close(obs["motion"][i], pose_now[:2] - pose_then[:2])
+        if bool((t == 0).all()):  # the in-step autoreset at step 7 restarts every history
+            history = history[-1:]
+        elif bool((t == 0).any()):  # after the partial reset the envs' histories differ
+            break
+    assert step == 10  # checked: steps 1-10, the autoreset at 7 and the partial reset
+
+
+def test_us_memory_is_read_the_same_when_observed_twice():
+    """Observing a step twice (the final observation of an ended episode is taken before the
+    autoreset) neither shifts the memory nor changes what is read."""
+    env = NavigationEnv(2, obs_mode="us_memory", memory_lag=2, **FAST)
+    env.reset(seed=0)
+    for _ in range(4):
+        obs, *_ = env.step(torch.ones(2, 3))
+        again = env._get_observations(None)
+        for k in obs:
+            assert torch.equal(obs[k], again[k]), k
+    assert float(obs["motion"].norm(dim=1).min()) > 1e-3  # the probes moved in the window
+
+
+@pytest.mark.parametrize("lag", [0, -3, 2.5])
+def test_memory_lag_must_be_a_positive_whole_number_of_steps(lag):
+    with pytest.raises(ValueError, match="memory_lag"):
+        NavigationEnv(1, obs_mode="us_memory", memory_lag=lag, **FAST)
+
+
 def test_measured_command_is_computed_once_per_pose_and_stays_fresh(monkeypatch):
     """A step reads the reached pose's command several times (yaw lead, info, heading,
     metrics) but computes it once; after steps, partial resets and direct pose writes the

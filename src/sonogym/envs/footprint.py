@@ -22,8 +22,9 @@ patient whole before cropping (resident growth 83 and 34.5 MB). ``BASE`` is what
 env on one patient (25-60 MB); ``PATIENT_FIXED`` the part of a patient that does not scale with
 its voxels (surface maps, landmarks). Real TotalSegmentator folders are counted
 as phantoms at the same spacing (their loader checks its own peak). Other options move the
-figure: ``obs_mode="state"`` renders no images (less), ``crop_to_reach=False`` keeps whole
-volumes (more), the learned simulator adds its networks.
+figure: ``obs_mode="state"`` renders no images (less), navigation's ``"us_memory"`` keeps
+``memory_lag`` + 1 images per env (0.93 MB more per env at the default 30), ``crop_to_reach=False``
+keeps whole volumes (more), the learned simulator adds its networks.
 
 Disk: each phantom seed not yet in the cache adds ``anatomy.phantom.cache_entry_bytes`` (90 MB
 at 1 mm; 65-84 MB measured, 17-21 s to build each) under ``$SONOGYM_CACHE``.

@@ -106,9 +106,7 @@ class NavigationConfig(SceneConfig):
     memory_lag: int = 30  # control steps: how old us_memory's remembered image is
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        if isinstance(self.memory_lag, bool) or not isinstance(self.memory_lag, int):
-            raise ValueError(f"memory_lag must be a whole number of steps, got {self.memory_lag!r}")
+        super().__post_init__()  # check_number_fields: memory_lag is an integer
         if self.memory_lag < 1:
             raise ValueError(f"memory_lag must be at least 1 step, got {self.memory_lag}")
 
@@ -271,7 +269,7 @@ class NavigationEnv(TaskEnv):
         pose = torch.stack([x, z, yaw], -1).float()
         frame = (image[:, 0].clamp(0, 1) * 255).round().to(torch.uint8)
         lag, slots = self.cfg.memory_lag, self.cfg.memory_lag + 1
-        t = self.episode_length_buf[ids].to(self.device)
+        t = self.episode_length_buf[ids]
         first = t == 0
         if bool(first.any()):
             self._memory_images[ids[first]] = frame[first].unsqueeze(1)

@@ -84,6 +84,7 @@ def test_protocol_eval_saves_episode_logs_and_refuses_held_out_runs(nav_run, tmp
     res = evaluate_run(nav_run, trials=2, envs=2, protocol="odt-patient", plot=False)
     log = load_log(log_path(nav_run, "odt-patient"))
     assert log.meta["test_env"]["patients"] == [5] and log.meta["train_env"]["patients"] == [0]
+    assert log.meta["test_env"]["imaging_randomization"] is False  # what the test ran with
     assert log.meta["protocol"] == "odt-patient" and log.meta["trials"] == 2
     assert log.meta["num_envs"] == 2  # which env, so which patient, ran each episode
     assert json.loads((nav_run / "eval-odt-patient.json").read_text())["protocol"] == "odt-patient"

@@ -592,12 +592,19 @@ def eval_(
             "give one for a run you cannot write to)."
         ),
     ] = None,
+    controllers: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Evaluate only these (policy, expert, random; ppo-sf runs also "
+            "policy-unfiltered); repeatable. Default: all."
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a run's policy (or a shipped one), the task's expert and a random policy; print
     and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
     from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
-    from sonogym.evaluation.rl_eval import evaluate_run, format_table, table_stem
+    from sonogym.evaluation.rl_eval import CONTROLLERS, evaluate_run, format_table, table_stem
 
     if (run is None) == (pretrained is None):
         raise typer.BadParameter("give --run RUN or --pretrained NAME (one of them)")
@@ -627,7 +634,7 @@ def eval_(
         results = evaluate_run(
             run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
             held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
-            name=name, out=out,
+            name=name, out=out, controllers=tuple(controllers) if controllers else CONTROLLERS,
             safety_filter={"mode": filter_mode, "threshold": filter_threshold},
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as e:

@@ -59,6 +59,13 @@ def test_eval_cli_and_errors(nav_run, tmp_path):
     assert res.exit_code == 0, res.output
     saved = json.loads((nav_run / "eval-pop.json").read_text())
     assert saved["env_overrides"]["patients"] == [7, 8] and saved["protocol"] == "pop"
+    # the policy alone (choosing checkpoints need not re-run the expert and a random policy)
+    res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--trials", "2", "--envs", "2",
+                                   "--controllers", "policy", "--name", "alone"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert set(json.loads((nav_run / "eval-alone.json").read_text())["results"]) == {"policy"}
+    res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--controllers", "oracle"])
+    assert res.exit_code != 0 and "unknown controllers ['oracle']" in res.output
     res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--patients", "8-7"])
     assert res.exit_code != 0 and "8 > 7" in res.output
     res = CliRunner().invoke(app, ["eval", "--run", str(nav_run), "--patients", "7",

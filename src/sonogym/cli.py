@@ -596,7 +596,7 @@ def eval_(
         list[str] | None,
         typer.Option(
             help="Evaluate only these (policy, expert, random; ppo-sf runs also "
-            "policy-unfiltered); repeatable. Default: all."
+            "unfiltered); repeatable. Default: all."
         ),
     ] = None,
 ) -> None:

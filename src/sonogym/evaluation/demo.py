@@ -51,8 +51,9 @@ def run_demo(
             if run.task != name:
                 continue
             # on the expert's patients (not the policy's training cohort), as evaluation images
-            kw = {**run.env_kwargs, "patients": env.cfg.patients, "imaging_randomization": False}
-            penv = make_vec(name, num_envs, **kw)
+            penv = make_vec(
+                name, num_envs, **run.evaluation_env_kwargs({"patients": env.cfg.patients})
+            )
             policy = run_policy(run, penv, shipped.weights(policy_name))
             runs.append((f"{name}_pretrained-{policy_name}", f"pretrained {policy_name}", penv,
                          policy))  # fmt: skip

@@ -140,7 +140,7 @@ def evaluate_run(
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
         "train_env": to_jsonable(trained.env_kwargs),
-        "test_env": to_jsonable(evaluation_env_kwargs(trained, overrides)),
+        "test_env": to_jsonable(trained.evaluation_env_kwargs(overrides)),
         "track_columns": list(track.columns),
         "track_units": list(track.units),
     }
@@ -271,14 +271,6 @@ def controller_policy(
     raise ValueError(f"unknown controller {name!r}; choose from {list(CONTROLLERS)}")
 
 
-def evaluation_env_kwargs(
-    trained: TrainedRun, env_overrides: dict[str, Any] | None
-) -> dict[str, Any]:
-    """The env options a test of ``trained`` runs with: training's, ``env_overrides`` on top, and
-    images as simulated (training's per-episode imaging randomisation stays in training)."""
-    return {**trained.env_kwargs, **(env_overrides or {}), "imaging_randomization": False}
-
-
 def run_controllers(
     run: str | Path | TrainedRun,
     trials: int,
@@ -297,7 +289,7 @@ def run_controllers(
     from sonogym.evaluation.episodes import run_episodes
 
     trained = run if isinstance(run, TrainedRun) else load_run(run)
-    env_kwargs = {**evaluation_env_kwargs(trained, env_overrides), "device": device}
+    env_kwargs = {**trained.evaluation_env_kwargs(env_overrides), "device": device}
     env = make_vec(trained.task, min(trials, envs or DEFAULT_ENVS), **env_kwargs)
     out = {
         name: run_episodes(

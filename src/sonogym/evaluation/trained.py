@@ -47,6 +47,11 @@ class TrainedRun:
     def folder(self) -> RunFolder:
         return RunFolder(self.path, next(k for k in run_kinds() if k.name == self.kind))
 
+    def evaluation_env_kwargs(self, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The env options this policy is tested with: training's, ``overrides`` on top, and
+        images as simulated (training's per-episode imaging randomisation stays in training)."""
+        return {**self.env_kwargs, **(overrides or {}), "imaging_randomization": False}
+
 
 def load_run(run: str | Path) -> TrainedRun:
     """The run folder's ``TrainedRun``, with a clear error for a folder that is not one."""

@@ -90,7 +90,7 @@ def resolve_env(
     if task is not None and task != run.task:
         raise ValueError(f"{choice.run} is a {run.task} run, not {task}: leave out --task")
     # on the CPU, where run_policy puts the policy
-    return run.task, {**run.env_kwargs, "imaging_randomization": False, "device": "cpu", **options}
+    return run.task, {**run.evaluation_env_kwargs(), "device": "cpu", **options}
 
 
 def make_policy(choice: PolicyChoice, task: str, env, seed: int):

@@ -40,12 +40,14 @@ def test_legacy_flat_config_loads_as_the_same_run(tmp_path):
 
 
 def test_mode_only_observation_scales_join_the_learning_record_of_that_mode_only():
-    """``us_memory``'s motion (m) reaches the network per 10 mm; other modes, which have no
-    ``motion`` entry (the adapter refuses scales of unknown entries), keep the task's scales."""
-    memory = resolve_train_config(
-        "navigation", "ppo", preset="cpu", env_kwargs={"obs_mode": "us_memory"}
-    )
-    assert memory.rl.learning.obs_scales == {"motion": 100.0}
+    """``us_memory``'s and ``us_scan``'s motion (m) reaches the network per 10 mm; other modes,
+    which have no ``motion`` entry (the adapter refuses scales of unknown entries), keep the
+    task's scales."""
+    for mode in ("us_memory", "us_scan"):
+        memory = resolve_train_config(
+            "navigation", "ppo", preset="cpu", env_kwargs={"obs_mode": mode}
+        )
+        assert memory.rl.learning.obs_scales == {"motion": 100.0}, mode
     for mode in ("us_heading", None):
         kwargs = {} if mode is None else {"obs_mode": mode}
         cfg = resolve_train_config("navigation", "ppo", preset="cpu", env_kwargs=kwargs)

@@ -259,6 +259,57 @@ def test_us_memory_is_read_the_same_when_observed_twice():
     assert float(obs["motion"].norm(dim=1).min()) > 1e-3  # the probes moved in the window
 
 
+def test_us_scan_adds_the_image_and_pose_where_the_probe_was_most_caudal():
+    """``us_scan``: ``us_memory``'s entries first, then the image (8 bits), heading and
+    displacement from the reached pose with the lowest z since the episode began (the first
+    such pose on ties), across in-step autoresets and partial resets."""
+    lag, n = 2, 2
+    env = NavigationEnv(n, obs_mode="us_scan", memory_lag=lag, episode_length=9, **FAST)
+    memory = NavigationEnv(n, obs_mode="us_memory", memory_lag=lag, episode_length=9, **FAST)
+    obs, _ = env.reset(seed=1)
+    assert env.observation_space.contains({k: v.numpy() for k, v in obs.items()})
+    ref, _ = memory.reset(seed=1)
+
+    def current(obs):
+        x, z, yaw, _ = env.scene.measured_command()
+        return obs["image"][:, 0].clone(), torch.stack([x, z, yaw], -1)
+
+    history = [current(obs)]
+    starts = [0, 0]  # index in history where each env's episode began
+    gen = torch.Generator().manual_seed(0)
+    lowered = 0
+    for step in range(1, 14):
+        # mostly along the spine, both ways: the caudal end moves, then stays
+        action = torch.rand(n, 3, generator=gen) * 4 - 2
+        obs, *_ = env.step(action)
+        ref, *_ = memory.step(action)
+        if step == 11:  # a partial reset restarts env 1's scan only
+            obs, _ = env.reset(options={"reset_mask": torch.tensor([False, True])})
+            ref, _ = memory.reset(options={"reset_mask": torch.tensor([False, True])})
+        history.append(current(obs))
+        t = env.episode_length_buf
+        for i in range(n):
+            if int(t[i]) == 0:
+                starts[i] = len(history) - 1
+            for key, width in (("image", 2), ("heading", 4), ("motion", 2)):
+                torch.testing.assert_close(obs[key][i, :width], ref[key][i])
+            zs = [float(h[1][i, 1]) for h in history[starts[i] :]]
+            low = starts[i] + zs.index(min(zs))
+            lowered += low != starts[i] and low == len(history) - 1
+            image_low, pose_low = history[low][0][i], history[low][1][i]
+            pose_now = history[-1][1][i]
+            want = (image_low.clamp(0, 1) * 255).round() / 255
+            torch.testing.assert_close(obs["image"][i, 2], want, rtol=0, atol=1e-6)
+            heading = torch.stack([pose_low[2].cos(), pose_low[2].sin()])
+            torch.testing.assert_close(obs["heading"][i, 4:], heading)
+            torch.testing.assert_close(obs["motion"][i, 2:], pose_now[:2] - pose_low[:2])
+            assert float(obs["motion"][i, 3]) >= 0.0  # nowhere lower than the caudal end
+    assert lowered >= 2  # the caudal end moved during episodes, not only at their starts
+    again = env._get_observations(None)  # observed twice: nothing moves
+    for k in obs:
+        assert torch.equal(obs[k], again[k]), k
+
+
 @pytest.mark.parametrize("lag", [0, -3, 2.5])
 def test_memory_lag_must_be_a_positive_whole_number_of_steps(lag):
     with pytest.raises(ValueError, match="memory_lag"):

@@ -41,7 +41,8 @@ class RunOptions:
     obs_mode: str | None = _flag(
         "Observation: the task's default (images), or 'state' (the privileged state), 'ct' / "
         "'labels' (navigation, surgery), 'us_heading' (navigation: image + the probe's yaw), "
-        "'us_memory' (navigation: us_heading + the image 30 steps back and the motion since)."
+        "'us_memory' (navigation: us_heading + the image 30 steps back and the motion since), "
+        "'us_scan' (navigation: us_memory + the image where the probe was most caudal)."
     )
     simulator: str | None = _flag("Ultrasound simulator: physical, sonogym or learned.")
     learned_nets: str | None = _flag(

@@ -23,7 +23,8 @@ env on one patient (25-60 MB); ``PATIENT_FIXED`` the part of a patient that does
 its voxels (surface maps, landmarks). Real TotalSegmentator folders are counted
 as phantoms at the same spacing (their loader checks its own peak). Other options move the
 figure: ``obs_mode="state"`` renders no images (less), navigation's ``"us_memory"`` keeps
-``memory_lag`` + 1 images per env (0.93 MB more per env at the default 30), ``crop_to_reach=False``
+``memory_lag`` + 1 images per env (0.93 MB more per env at the default 30; ``"us_scan"`` one
+image more), ``crop_to_reach=False``
 keeps whole volumes (more), the learned simulator adds its networks.
 
 Disk: each phantom seed not yet in the cache adds ``anatomy.phantom.cache_entry_bytes`` (90 MB

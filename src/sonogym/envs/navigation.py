@@ -26,6 +26,16 @@ of the goal the image shows"); given also the image 30 steps back and the motion
 supervised probe's median error near the goal falls from ~12 mm to 9.5 mm on held-out phantoms
 and 8.6 mm on the real subject. Everything it adds is what the arm's own pose tracking and the
 images already seen tell; nothing of where the goal lies.
+``"us_scan"`` (not in the paper): ``us_memory`` with the caudal end of the scan as well. Dict
+``image`` (3, 200, 150): ``us_memory``'s two images and the image taken where the reached probe
+was most caudal (lowest z of {P}) so far this episode (8 bits); ``heading`` (6,): ``us_memory``'s
+and (cos, sin) of the yaw there; ``motion`` (4,) m: ``us_memory``'s and the frontal-plane
+displacement (x, z) from there. Why: a policy with a 30-step memory counts levels up from the
+sacrum but not down from L1: from cranial starts it stops over L3's arch, which looks like L4's
+(docs/envs.md). Sonographers count from the sacrum; the caudal end of the scan keeps the
+lowest level visited in view however long ago, so a probe that went down to L5 or the sacrum
+and came back knows how far above it is. Like ``us_memory``, only what the pose tracking and
+the images already seen tell.
 
 **Actions.** (dx, dy, dalpha) in {U}, unitless; scaled by ``action_scale`` (3 mm, 3 mm, 0.1 rad)
 and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.
@@ -83,7 +93,7 @@ from sonogym.envs.task_env import TaskEnv
 from sonogym.geometry import relative_pose, wrap_angle
 from sonogym.robots.description import ArmName
 
-ObsMode = Literal["us", "us_heading", "us_memory", "ct", "labels", "state"]
+ObsMode = Literal["us", "us_heading", "us_memory", "us_scan", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 
 
@@ -103,7 +113,7 @@ class NavigationConfig(SceneConfig):
     action_scale: tuple[float, float, float] = (0.003, 0.003, 0.1)  # m, m, rad per unit
     action_limit: tuple[float, float, float] = (0.006, 0.006, 0.2)  # m, m, rad per step
     w1: float = 0.045  # reward per mm of position progress (paper)
-    memory_lag: int = 30  # control steps: how old us_memory's remembered image is
+    memory_lag: int = 30  # control steps: how old us_memory's (us_scan's) remembered image is
 
     def __post_init__(self) -> None:
         super().__post_init__()  # check_number_fields: memory_lag is an integer
@@ -171,7 +181,7 @@ class NavigationEnv(TaskEnv):
         self.command = self.goal_cmd.clone()
         self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         unit_image = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
-        if cfg.obs_mode == "us_memory":
+        if cfg.obs_mode in ("us_memory", "us_scan"):
             self._init_memory()
         obs_space = {
             "us": unit_image,
@@ -183,6 +193,13 @@ class NavigationEnv(TaskEnv):
                     "image": spaces.Box(0.0, 1.0, (2, *self.scene.image_shape), np.float32),
                     "heading": spaces.Box(-1.0, 1.0, (4,), np.float32),
                     "motion": spaces.Box(-np.inf, np.inf, (2,), np.float32),
+                }
+            ),
+            "us_scan": spaces.Dict(
+                {
+                    "image": spaces.Box(0.0, 1.0, (3, *self.scene.image_shape), np.float32),
+                    "heading": spaces.Box(-1.0, 1.0, (6,), np.float32),
+                    "motion": spaces.Box(-np.inf, np.inf, (4,), np.float32),
                 }
             ),
             "ct": unit_image,
@@ -247,7 +264,7 @@ class NavigationEnv(TaskEnv):
             yaw = self.scene.measured_command(sl)[2]
             heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1).float()
             return {"image": self.scene.observe("us", env_ids), "heading": heading}
-        if mode == "us_memory":
+        if mode in ("us_memory", "us_scan"):
             return self._observe_with_memory(env_ids)
         return self.scene.observe(mode, env_ids)
 
@@ -261,6 +278,11 @@ class NavigationEnv(TaskEnv):
             n, slots, *self.scene.image_shape, dtype=torch.uint8, device=dev
         )
         self._memory_poses = torch.zeros(n, slots, 3, device=dev)  # reached (x, z, yaw)
+        if self.cfg.obs_mode == "us_scan":  # the image and pose where z was lowest
+            self._caudal_images = torch.zeros(
+                n, *self.scene.image_shape, dtype=torch.uint8, device=dev
+            )
+            self._caudal_poses = torch.zeros(n, 3, device=dev)
 
     def _observe_with_memory(self, env_ids: torch.Tensor | None) -> dict[str, torch.Tensor]:
         ids = torch.arange(self.num_envs, device=self.device) if env_ids is None else env_ids
@@ -279,12 +301,18 @@ class NavigationEnv(TaskEnv):
         read = (t - lag) % slots
         past = self._memory_images[ids, read].float().unsqueeze(1) / 255
         then = self._memory_poses[ids, read]
-        heading = torch.stack([yaw.cos(), yaw.sin(), then[:, 2].cos(), then[:, 2].sin()], -1)
-        return {
-            "image": torch.cat([image, past], 1),
-            "heading": heading.float(),
-            "motion": pose[:, :2] - then[:, :2],
-        }
+        images, poses = [image, past], [pose, then]
+        if self.cfg.obs_mode == "us_scan":
+            # strictly lower only: observing a step twice leaves the caudal end as it was
+            lower = first | (pose[:, 1] < self._caudal_poses[ids, 1])
+            if bool(lower.any()):
+                self._caudal_images[ids[lower]] = frame[lower]
+                self._caudal_poses[ids[lower]] = pose[lower]
+            images.append(self._caudal_images[ids].float().unsqueeze(1) / 255)
+            poses.append(self._caudal_poses[ids])
+        heading = torch.cat([torch.stack([p[:, 2].cos(), p[:, 2].sin()], -1) for p in poses], -1)
+        motion = torch.cat([pose[:, :2] - p[:, :2] for p in poses[1:]], -1)
+        return {"image": torch.cat(images, 1), "heading": heading.float(), "motion": motion}
 
     def _get_info(self) -> dict:
         return {
@@ -351,7 +379,8 @@ SPEC = TaskSpec(
         # the single-phantom PPO of docs/results.md: 9,024 steps x 64 envs, ~45 CPU min
         timesteps_cpu=9_024,
         image_height=200,
-        obs_scales_by_mode={"us_memory": {"motion": 100.0}},  # m -> per 10 mm, order 1
+        # m -> per 10 mm: order 1 over the memory's window, up to ~15 from the scan's caudal end
+        obs_scales_by_mode={"us_memory": {"motion": 100.0}, "us_scan": {"motion": 100.0}},
     ),
     dataset=DatasetSpec(
         features=(

@@ -95,6 +95,8 @@ from sonogym.robots.description import ArmName
 
 ObsMode = Literal["us", "us_heading", "us_memory", "us_scan", "ct", "labels", "state"]
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
+#: the modes that keep a memory of the scan (``_init_memory``, ``_observe_with_memory``)
+MEMORY_MODES: tuple[str, ...] = ("us_memory", "us_scan")
 
 
 @dataclass(frozen=True)
@@ -181,7 +183,7 @@ class NavigationEnv(TaskEnv):
         self.command = self.goal_cmd.clone()
         self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
         unit_image = spaces.Box(0.0, 1.0, (1, *self.scene.image_shape), np.float32)
-        if cfg.obs_mode in ("us_memory", "us_scan"):
+        if cfg.obs_mode in MEMORY_MODES:
             self._init_memory()
         obs_space = {
             "us": unit_image,
@@ -264,7 +266,7 @@ class NavigationEnv(TaskEnv):
             yaw = self.scene.measured_command(sl)[2]
             heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1).float()
             return {"image": self.scene.observe("us", env_ids), "heading": heading}
-        if mode in ("us_memory", "us_scan"):
+        if mode in MEMORY_MODES:
             return self._observe_with_memory(env_ids)
         return self.scene.observe(mode, env_ids)
 

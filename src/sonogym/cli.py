@@ -267,6 +267,23 @@ def train(
             "odt-sim (also learned nets 0-3). --patients / --simulator override it."
         ),
     ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="A training setting as KEY=VALUE, as sonogym sweep's grid names it: "
+            "init_log_std, final_log_std, anneal_steps, reward_scale, ..., ppo.<field>, "
+            "a2c.<field>; repeatable. Applied last.",
+        ),
+    ] = None,
+    init_from: Annotated[
+        Path | None,
+        typer.Option(
+            help="Start from this checkpoint's weights (RUN/checkpoints/agent_<t>.pt of a run "
+            "of the same task, network and observation) instead of random ones: fine-tuning. "
+            "Its CPU time counts in this run's times.json."
+        ),
+    ] = None,
 ) -> None:
     """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory.
     Settings resolve from the task's defaults, then the device preset, then these options."""
@@ -283,10 +300,12 @@ def train(
         if protocol is not None:
             env_kwargs = protocol_env_kwargs(protocol, env_kwargs, pats, simulator)
             pats, simulator = None, None
+        settings = parse_settings(set_)
     res = run_train(
         task, algo, seed=seed, out=out, patients=pats, simulator=simulator,
         env_kwargs=env_kwargs, resume=resume, force=force, log=typer.echo,
-        checkpoint_interval=checkpoint_every, **options.train_kwargs(),
+        checkpoint_interval=checkpoint_every, settings=settings, init_from=init_from,
+        **options.train_kwargs(),
     )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 
@@ -425,6 +444,26 @@ def _bad_parameter() -> Iterator[None]:
         yield
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+
+
+def parse_settings(items: list[str] | None) -> dict[str, Any]:
+    """``train --set KEY=VALUE`` items -> {key: value} (values as ``parse_value`` reads them);
+    names a malformed item, a repeated key or an unknown setting."""
+    from sonogym.agents.configs import check_setting_key
+    from sonogym.envs.options import parse_value
+
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = (t.strip() for t in item.partition("="))
+        if not sep or not key or not value:
+            raise ValueError(f"--set {item!r}: write KEY=VALUE, e.g. final_log_std=-1.5")
+        if key in out:
+            raise ValueError(f"--set {key} is given twice")
+        if key == "seed" or key.startswith("env."):
+            raise ValueError(f"--set {key}: use --seed / --env-option for this")
+        check_setting_key(key, "--set key")
+        out[key] = parse_value(value)
+    return out
 
 
 #: Env options with their own ``train`` flag (units or parsing of their own there).

@@ -232,3 +232,83 @@ def test_env_option_values_follow_the_option_type():
         parse_env_options("surgery", ["action_scale=0.004,0.004,0.05"])  # surgery has 6
     got = parse_env_options("surgery", ["episode_length=20.0"])  # an integral float: 20
     assert got == {"episode_length": 20} and type(got["episode_length"]) is int
+
+
+def test_init_from_starts_from_the_checkpoint_and_counts_its_cost(tmp_path):
+    """A fine-tuning run starts from another run's weights and value statistics (not its
+    optimiser), takes its own settings, and its times.json counts the source run's CPU time."""
+    from sonogym.agents.train import read_times
+
+    src = tmp_path / "src"
+    _tiny("navigation", "ppo", src, steps=64, checkpoint_interval=32)
+    ckpt = src / "checkpoints" / "agent_32.pt"
+    source_cpu = read_times(src / "checkpoints")[32]["cpu_s"]
+    assert source_cpu > 0
+    tuned = tmp_path / "tuned"
+    settings = {"final_log_std": -1.0, "anneal_steps": 32, "ppo.learning_rate": 3e-5}
+    _tiny("navigation", "ppo", tuned, steps=32, settings=settings, init_from=ckpt)
+    start = torch.load(tuned / "checkpoints" / "agent_0.pt", weights_only=True)
+    source = torch.load(ckpt, weights_only=True)
+    for name in ("policy", "value_preprocessor"):
+        assert start[name].keys() == source[name].keys()
+        assert all(torch.equal(start[name][k], source[name][k]) for k in source[name])
+    # a fresh Adam: no moments carried over, the new run's learning rate
+    assert start["optimizer"]["state"] == {}
+    assert start["optimizer"]["param_groups"][0]["lr"] == pytest.approx(3e-5)
+    cfg = json.loads((tuned / "config.json").read_text())
+    assert cfg["init_from"]["checkpoint"] == str(ckpt.resolve())
+    assert cfg["init_from"]["steps"] == 32 and cfg["init_from"]["cpu_s"] == source_cpu
+    assert cfg["task_config"]["learning"]["final_log_std"] == -1.0
+    assert cfg["task_config"]["ppo"]["learning_rate"] == pytest.approx(3e-5)
+    assert read_times(tuned / "checkpoints")[32]["cpu_s"] > source_cpu
+    # the run's own exploration schedule: its sigma ceiling has fallen to exp(-1)
+    policy, _ = load_policy(tuned)
+    assert float(policy.log_std_max) == pytest.approx(-1.0)
+
+
+def test_init_from_refuses_what_cannot_continue(tmp_path):
+    src = tmp_path / "src"
+    _tiny("navigation", "ppo", src, steps=32)
+    ckpt = src / "checkpoints" / "agent_32.pt"
+    with pytest.raises(ValueError, match="observed .* this one observes"):
+        _tiny("navigation", "ppo", tmp_path / "a", steps=32, init_from=ckpt,
+              env_kwargs_extra={"obs_mode": "us_heading"})  # fmt: skip
+    with pytest.raises(ValueError, match="--net small"):
+        _tiny("navigation", "ppo", tmp_path / "b", steps=32, init_from=ckpt, net="paper")
+    with pytest.raises(ValueError, match="a navigation run; this run trains surgery"):
+        _tiny("surgery", "ppo", tmp_path / "c", steps=32, init_from=ckpt)
+    with pytest.raises(ValueError, match="not a checkpoint of a sonogym train run"):
+        stray = tmp_path / "agent_32.pt"
+        stray.write_bytes(ckpt.read_bytes())
+        _tiny("navigation", "ppo", tmp_path / "d", steps=32, init_from=stray)
+    with pytest.raises(ValueError, match="a resumed run keeps its own"):
+        _tiny("navigation", "ppo", src, steps=64, resume=True, init_from=ckpt)
+    with pytest.raises(ValueError, match="unknown setting 'lr'"):
+        _tiny("navigation", "ppo", tmp_path / "e", steps=32, settings={"lr": 1e-3})
+
+
+@pytest.mark.parametrize(
+    ("items", "message"),
+    [
+        (["lr=1e-3"], "unknown --set key 'lr'"),
+        (["final_log_std"], "write KEY=VALUE"),
+        (["anneal_steps=10", "anneal_steps=20"], "--set anneal_steps is given twice"),
+        (["env.w1=0.1"], "use --seed / --env-option"),
+        (["ppo.lr=1e-3"], "ppo has no setting 'lr'"),
+        (["anneal_steps=-5"], "anneal_steps must be an integer >= 0"),
+    ],
+)
+def test_cli_set_refusals(items, message, tmp_path):
+    """A bad --set is refused before anything is built or written, naming the fix."""
+    from typer.testing import CliRunner
+
+    from sonogym.cli import app
+
+    out = tmp_path / "run"
+    args = ["train", "--task", "navigation", "--out", str(out)]
+    for item in items:
+        args += ["--set", item]
+    res = CliRunner().invoke(app, args)
+    text = " ".join(f"{res.output} {res.exception!r}".split())
+    assert res.exit_code != 0 and message in text, text
+    assert not out.exists()

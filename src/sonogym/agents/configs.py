@@ -125,6 +125,9 @@ class TrainConfig:
     device: str = "cpu"
     checkpoint_interval: int | None = None  # env steps per env; None: ~10 checkpoints
     write_interval: int | None = None  # env steps per env; None: once per update
+    #: the checkpoint the weights started from instead of random ones (``warm_start_source``:
+    #: checkpoint, run, steps, cpu_s, wall_s of that run by then); None: a fresh start
+    init_from: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         check_algo(self.task, self.algo)
@@ -188,6 +191,7 @@ class TrainConfig:
             "write_interval": self.write_interval,
             "task_config": to_jsonable(self.rl),
             "algo_params": to_jsonable(self.params),
+            "init_from": self.init_from,
         }
 
     @classmethod
@@ -211,6 +215,7 @@ class TrainConfig:
             device=d.get("device", "cpu"),
             checkpoint_interval=d.get("checkpoint_interval"),
             write_interval=d.get("write_interval"),
+            init_from=d.get("init_from"),
         )
 
 
@@ -312,6 +317,55 @@ def resume_config(saved: TrainConfig, **explicit: Any) -> TrainConfig:
         device=str(given.get("device", saved.device)),
         threads=given.get("threads", saved.threads),
     )
+
+
+#: Settings of the learning (``TaskRLConfig.learning``, a ``LearningParams``), named flat.
+LEARNING_KEYS = (
+    "reward_scale", "init_log_std", "final_log_std", "anneal_steps", "mean_bound_penalty",
+    "standardize_steps", "kl_follows_sigma",
+)  # fmt: skip
+#: Task-config settings ``apply_settings`` takes by name; besides them ``ppo.<field>``,
+#: ``a2c.<field>`` (the algorithm's table) and ``env.<option>`` (an env option).
+TASK_KEYS = ("num_envs", "net", "obs_downsample", *LEARNING_KEYS)
+
+
+def check_setting_key(key: str, what: str = "setting") -> None:
+    """Refuse a key ``apply_settings`` does not know, listing the ones it does."""
+    head, _, field = key.partition(".")
+    ok = key in TASK_KEYS or (head in ("ppo", "a2c") and field) or (head == "env" and field)
+    if not ok:
+        raise ValueError(
+            f"unknown {what} {key!r}: use one of {list(TASK_KEYS)}, ppo.<field>, a2c.<field> "
+            "or env.<option> (seeds: --seed / --seeds)"
+        )
+
+
+def apply_settings(base: TrainConfig, params: dict[str, Any], what: str = "setting") -> TrainConfig:
+    """``base`` with the given settings (keys as ``check_setting_key`` lists them; ``seed``
+    sets the seed), checked as a run's config is (an unknown setting, a value the algorithm's
+    table, the task config or the env config refuses: ``ValueError`` naming it), without
+    building anything. The training sweeps' grid points and ``sonogym train --set``."""
+    rl = base.rl
+    for key, v in params.items():
+        if key == "seed":
+            continue
+        check_setting_key(key, what)
+        head, _, field = key.partition(".")
+        if head in ("ppo", "a2c"):
+            names = [f.name for f in dataclasses.fields(getattr(rl, head))]
+            if field not in names:
+                raise ValueError(
+                    f"{what} {key!r}: {head} has no setting {field!r}; its settings are {names}"
+                )
+            table = dataclasses.replace(getattr(rl, head), **{field: v})
+            rl = dataclasses.replace(rl, **{head: table})
+        elif head == "env":
+            rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, field: v})
+        elif key in LEARNING_KEYS:
+            rl = dataclasses.replace(rl, learning=dataclasses.replace(rl.learning, **{key: v}))
+        else:
+            rl = dataclasses.replace(rl, **{key: v})
+    return dataclasses.replace(base, rl=rl, seed=int(params.get("seed", base.seed)))
 
 
 def _env_default(task: str, key: str) -> Any:

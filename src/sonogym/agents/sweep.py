@@ -23,7 +23,6 @@ Ray runs locally unless ``address`` names a cluster (``ray://host:10001``).
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
 import shutil
 import tempfile
@@ -32,7 +31,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sonogym.agents.configs import TrainConfig, resolve_train_config
+from sonogym.agents.configs import (
+    TrainConfig,
+    apply_settings,
+    check_setting_key,
+    resolve_train_config,
+)
 from sonogym.envs.options import parse_value
 from sonogym.runs import (
     atomic_write_json,
@@ -44,12 +48,6 @@ from sonogym.runs import (
 
 RAY_HINT = "sonogym sweep needs Ray Tune: pip install 'sonogym[ray]' (or pip install 'ray[tune]')"
 SWEEP_FILE = "sweep.json"
-#: Grid keys of the learning settings (``TaskRLConfig.learning``), written without a prefix.
-LEARNING_KEYS = (
-    "reward_scale", "init_log_std", "final_log_std", "anneal_steps", "mean_bound_penalty",
-    "standardize_steps", "kl_follows_sigma",
-)  # fmt: skip
-TASK_KEYS = ("num_envs", "net", "obs_downsample", *LEARNING_KEYS)
 
 
 @dataclass(frozen=True)
@@ -89,39 +87,12 @@ def parse_grid(items: list[str] | None) -> dict[str, list[Any]]:
 
 
 def check_key(key: str) -> None:
-    head, _, field = key.partition(".")
-    ok = key in TASK_KEYS or (head in ("ppo", "a2c") and field) or (head == "env" and field)
-    if not ok:
-        raise ValueError(
-            f"unknown grid key {key!r}: use one of {list(TASK_KEYS)}, ppo.<field>, a2c.<field> "
-            "or env.<option> (seeds: --seeds)"
-        )
+    check_setting_key(key, "grid key")
 
 
 def apply(base: TrainConfig, params: dict[str, Any]) -> TrainConfig:
-    """``base`` with a trial's seed and grid values, checked as a run's config is (an unknown
-    setting, a value the algorithm's table, the task config or the env config refuses:
-    ``ValueError`` naming it), without building anything."""
-    rl = base.rl
-    for key, v in params.items():
-        if key == "seed":
-            continue
-        head, _, field = key.partition(".")
-        if head in ("ppo", "a2c"):
-            names = [f.name for f in dataclasses.fields(getattr(rl, head))]
-            if field not in names:
-                raise ValueError(
-                    f"grid key {key!r}: {head} has no setting {field!r}; its settings are {names}"
-                )
-            table = dataclasses.replace(getattr(rl, head), **{field: v})
-            rl = dataclasses.replace(rl, **{head: table})
-        elif head == "env":
-            rl = dataclasses.replace(rl, env_kwargs={**rl.env_kwargs, field: v})
-        elif key in LEARNING_KEYS:  # a LearningParams field, named flat in the grid
-            rl = dataclasses.replace(rl, learning=dataclasses.replace(rl.learning, **{key: v}))
-        else:
-            rl = dataclasses.replace(rl, **{key: v})
-    return dataclasses.replace(base, rl=rl, seed=int(params.get("seed", base.seed)))
+    """``base`` with a trial's seed and grid values (``apply_settings``)."""
+    return apply_settings(base, params, "grid key")
 
 
 def check_sweep_memory(configs: list[TrainConfig], trials: int, max_concurrent: int | None):

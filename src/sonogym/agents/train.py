@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,6 +54,7 @@ from sonogym.agents.checkpoint import (
 from sonogym.agents.configs import (
     TaskRLConfig,
     TrainConfig,
+    apply_settings,
     build_agent,
     resolve_train_config,
     resume_config,
@@ -106,6 +108,8 @@ def train(
     force: bool = False,
     checkpoint_interval: int | None = None,
     write_interval: int | None = None,
+    settings: dict[str, Any] | None = None,
+    init_from: str | Path | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> TrainResult:
@@ -121,6 +125,10 @@ def train(
         resume: continue the run in ``out`` (its ``config.json``); force: replace it.
         checkpoint_interval, write_interval: in env steps (default: about 10 checkpoints at
             update boundaries; TensorBoard once per update).
+        settings: training settings by name (``configs.apply_settings``: ``final_log_std``,
+            ``ppo.learning_rate``, ``env.<option>``, ...), applied last.
+        init_from: an RL checkpoint (``RUN/checkpoints/agent_<t>.pt``) whose weights the run
+            starts from instead of random ones (``warm_start_source``); fine-tuning.
         progress: show the progress with the ETA (``sonogym.progress``: a bar on a terminal,
             a line every few percent in a log); log: where the start summary goes (default:
             printed when ``progress``).
@@ -137,6 +145,11 @@ def train(
     )  # fmt: skip
     out = Path(out or f"runs/{task}-{algo}-s{seed or 0}")
     if resume:
+        if settings or init_from is not None:
+            raise ValueError(
+                "settings and init_from define a new run; a resumed run keeps its own. Drop "
+                "them to continue the run, or start a new one in another out folder"
+            )
         if not (out / "config.json").is_file():
             raise FileNotFoundError(f"nothing to resume: {out} holds no training run")
         saved = load_train_config(out)
@@ -149,6 +162,10 @@ def train(
         cfg = resolve_train_config(
             task, algo, preset=preset or "auto", **{**explicit, "device": device or "cpu"}
         )
+        if settings:
+            cfg = apply_settings(cfg, settings)
+        if init_from is not None:
+            cfg = dataclasses.replace(cfg, init_from=warm_start_source(init_from, cfg))
     if log is None:
         log = print if progress else _quiet
     return run_training(cfg, out, resume=resume, force=force, progress=progress, log=log)
@@ -262,6 +279,8 @@ def _run_training(
     ckpt_dir = out / "checkpoints"
     if start_ckpt is not None:
         load_agent(agent, start_ckpt.path)
+    elif cfg.init_from is not None:
+        warm_start(agent, cfg.init_from, adapter)
     resolved = {
         **cfg.to_dict(),
         "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
@@ -283,7 +302,7 @@ def _run_training(
     obs, _ = adapter.reset()
     if log is not _quiet:
         _announce(cfg, out, start, log, agent, adapter, obs)
-    clock = RunClock(ckpt_dir, start)
+    clock = RunClock(ckpt_dir, start, inherited=cfg.init_from)
     bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
     done = start
     recent = _EpisodeMeans()
@@ -348,14 +367,17 @@ def _run_training(
 class RunClock:
     """CPU and wall seconds a run has spent by each checkpoint, across resumes:
     ``checkpoints/times.json`` = {env steps: {"cpu_s", "wall_s"}} (CPU: this process's, all its
-    threads; what a model card reports as the training's cost)."""
+    threads; what a model card reports as the training's cost). A run started from another
+    run's checkpoint (``inherited``: its ``init_from``) counts that run's seconds up to the
+    checkpoint too: the figures are the policy's cost from random weights."""
 
     FILE = "times.json"
 
-    def __init__(self, ckpt_dir: Path, start: int) -> None:
+    def __init__(self, ckpt_dir: Path, start: int, inherited: dict | None = None) -> None:
         self.path = Path(ckpt_dir) / self.FILE
         self.times = read_times(ckpt_dir)
-        base = self.times.get(start, {"cpu_s": 0.0, "wall_s": 0.0})
+        zero = {k: float((inherited or {}).get(k) or 0.0) for k in ("cpu_s", "wall_s")}
+        base = self.times.get(start, zero)
         # a resume continues from its checkpoint's totals; later entries were overtaken
         self.times = {t: v for t, v in self.times.items() if t <= start}
         self.cpu0, self.wall0 = time.process_time() - base["cpu_s"], time.time() - base["wall_s"]
@@ -419,6 +441,61 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
 
         models["cost_value"] = CostValue(task, layout, space, device, net)
     return models
+
+
+def warm_start_source(path: str | Path, cfg: TrainConfig) -> dict[str, Any]:
+    """Where a run's weights start (``init_from``): an RL checkpoint of a ``sonogym train`` run
+    of the same task and network, with that run's step count and CPU/wall seconds by then
+    (None where its ``times.json`` lacks them). Refuses anything else, naming why."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--init-from {path}: no such checkpoint file")
+    run = path.parent.parent
+    m = re.fullmatch(RL_RUN.checkpoint_name, path.name)
+    if m is None or path.parent.name != "checkpoints" or not (run / "config.json").is_file():
+        raise ValueError(
+            f"--init-from {path}: not a checkpoint of a sonogym train run; pass "
+            f"RUN/checkpoints/{RL_RUN.checkpoint_hint}"
+        )
+    parent = load_train_config(run)
+    if parent.task != cfg.task:
+        raise ValueError(f"--init-from {path}: a {parent.task} run; this run trains {cfg.task}")
+    if parent.rl.net != cfg.rl.net:
+        raise ValueError(
+            f"--init-from {path}: trained with --net {parent.rl.net}; this run uses "
+            f"--net {cfg.rl.net}. Pass --net {parent.rl.net}"
+        )
+    steps = int(m.group(1))
+    spent = read_times(path.parent).get(steps, {})
+    return {
+        "checkpoint": str(path.resolve()), "run": str(run.resolve()), "steps": steps,
+        "cpu_s": spent.get("cpu_s"), "wall_s": spent.get("wall_s"),
+    }  # fmt: skip
+
+
+def warm_start(agent, source: dict[str, Any], adapter: SkrlEnvAdapter) -> None:
+    """Load the networks and standardisers of ``source["checkpoint"]`` into ``agent`` (its
+    optimiser starts fresh, at the run's learning rate); the run must observe and act exactly
+    as the source run did."""
+    run = Path(source["run"])
+    theirs = read_json(run / "config.json", "`sonogym train` run folder", ("obs_layout",))
+    ours = {"keys": list(adapter.layout.keys), "shapes": [list(s) for s in adapter.layout.shapes]}
+    if theirs["obs_layout"] != ours:
+        raise ValueError(
+            f"--init-from {source['checkpoint']}: that run observed {theirs['obs_layout']}, "
+            f"this one observes {ours}; use the same --obs-mode, --obs-downsample and env "
+            "options that shape the observation"
+        )
+    bounds = [adapter.action_space.low.tolist(), adapter.action_space.high.tolist()]
+    if [theirs["action_space"]["low"], theirs["action_space"]["high"]] != bounds:
+        raise ValueError(
+            f"--init-from {source['checkpoint']}: that run's action box "
+            f"{theirs['action_space']} differs from this one's {bounds}"
+        )
+    state = read_checkpoint(source["checkpoint"], agent.device)
+    for name, module in agent.checkpoint_modules.items():
+        if isinstance(module, torch.nn.Module) and name in state:
+            module.load_state_dict(state[name])
 
 
 def save_agent(agent, path: Path) -> Path:

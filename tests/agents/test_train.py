@@ -270,9 +270,10 @@ def test_init_from_refuses_what_cannot_continue(tmp_path):
     src = tmp_path / "src"
     _tiny("navigation", "ppo", src, steps=32)
     ckpt = src / "checkpoints" / "agent_32.pt"
-    with pytest.raises(ValueError, match="observed .* this one observes"):
+    with pytest.raises(ValueError, match="trained with --obs-mode us; .* Pass --obs-mode us"):
         _tiny("navigation", "ppo", tmp_path / "a", steps=32, init_from=ckpt,
               env_kwargs_extra={"obs_mode": "us_heading"})  # fmt: skip
+    assert not (tmp_path / "a").exists()  # refused before the folder was made
     with pytest.raises(ValueError, match="--net small"):
         _tiny("navigation", "ppo", tmp_path / "b", steps=32, init_from=ckpt, net="paper")
     with pytest.raises(ValueError, match="a navigation run; this run trains surgery"):

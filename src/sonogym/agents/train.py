@@ -460,11 +460,20 @@ def warm_start_source(path: str | Path, cfg: TrainConfig) -> dict[str, Any]:
     parent = load_train_config(run)
     if parent.task != cfg.task:
         raise ValueError(f"--init-from {path}: a {parent.task} run; this run trains {cfg.task}")
-    if parent.rl.net != cfg.rl.net:
-        raise ValueError(
-            f"--init-from {path}: trained with --net {parent.rl.net}; this run uses "
-            f"--net {cfg.rl.net}. Pass --net {parent.rl.net}"
-        )
+
+    def obs_mode(c: TrainConfig) -> str:
+        return c.rl.env_kwargs.get("obs_mode", get_task(c.task).default_obs_mode)
+
+    for flag, theirs, ours in (
+        ("--net", parent.rl.net, cfg.rl.net),
+        ("--obs-mode", obs_mode(parent), obs_mode(cfg)),
+        ("--obs-downsample", parent.rl.obs_downsample, cfg.rl.obs_downsample),
+    ):  # the common mismatches, before the envs are built (warm_start checks the rest)
+        if theirs != ours:
+            raise ValueError(
+                f"--init-from {path}: trained with {flag} {theirs}; this run uses {flag} "
+                f"{ours}. Pass {flag} {theirs}"
+            )
     steps = int(m.group(1))
     spent = read_times(path.parent).get(steps, {})
     return {

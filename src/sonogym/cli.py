@@ -279,9 +279,10 @@ def train(
     init_from: Annotated[
         Path | None,
         typer.Option(
-            help="Start from this checkpoint's weights (RUN/checkpoints/agent_<t>.pt of a run "
-            "of the same task, network and observation) instead of random ones: fine-tuning. "
-            "Its CPU time counts in this run's times.json."
+            help="Start from these weights instead of random ones (fine-tuning): a checkpoint "
+            "RUN/checkpoints/agent_<t>.pt, or a shipped policy's name (sonogym eval --pretrained "
+            "list), of the same task, network and observation. Its CPU time counts in this "
+            "run's times.json."
         ),
     ] = None,
 ) -> None:
@@ -301,6 +302,7 @@ def train(
             env_kwargs = protocol_env_kwargs(protocol, env_kwargs, pats, simulator)
             pats, simulator = None, None
         settings = parse_settings(set_)
+        init_from = shipped_or_path(init_from)
     res = run_train(
         task, algo, seed=seed, out=out, patients=pats, simulator=simulator,
         env_kwargs=env_kwargs, resume=resume, force=force, log=typer.echo,
@@ -444,6 +446,15 @@ def _bad_parameter() -> Iterator[None]:
         yield
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+
+
+def shipped_or_path(given: Path | None) -> Path | None:
+    """``--init-from``: a shipped policy's name becomes its folder; a path stays as given."""
+    if given is None or given.exists():
+        return given
+    from sonogym.evaluation.pretrained import available, pretrained_dir
+
+    return pretrained_dir(str(given)) if str(given) in available() else given
 
 
 def parse_settings(items: list[str] | None) -> dict[str, Any]:

@@ -70,6 +70,8 @@ class TrainingInterrupted(Exception):
 MARKER = ".sonogym"
 #: The lock file of an output folder in use (``OutputLock``).
 LOCK = ".sonogym.lock"
+#: The acting weights in a shipped policy's folder (``sonogym.evaluation.pretrained``).
+SHIPPED_WEIGHTS = "policy.safetensors"
 #: What ``sonogym eval`` writes into a run folder.
 _EVAL_ENTRIES = (
     "eval.json",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -313,3 +314,42 @@ def test_cli_set_refusals(items, message, tmp_path):
     text = " ".join(f"{res.output} {res.exception!r}".split())
     assert res.exit_code != 0 and message in text, text
     assert not out.exists()
+
+
+def test_init_from_a_shipped_policy(tmp_path, monkeypatch):
+    """A shipped policy (its folder; the CLI takes its name) is a starting point too, its cost
+    taken from its model card."""
+    from sonogym.agents.configs import resolve_train_config
+    from sonogym.agents.train import warm_start_source
+    from sonogym.cli import shipped_or_path
+    from sonogym.evaluation.pretrained import export_pretrained, read_card
+
+    src = tmp_path / "src"
+    _tiny("navigation", "ppo", src, steps=32)
+    folder = export_pretrained(src, "tiny", root=tmp_path / "shipped")
+    tuned = tmp_path / "tuned"
+    _tiny("navigation", "ppo", tuned, steps=32, init_from=folder)
+    start = torch.load(tuned / "checkpoints" / "agent_0.pt", weights_only=True)["policy"]
+    trained = torch.load(src / "checkpoints" / "agent_32.pt", weights_only=True)["policy"]
+    assert all(torch.equal(start[k], trained[k]) for k in trained)
+    cfg = json.loads((tuned / "config.json").read_text())["init_from"]
+    assert cfg["steps"] == 32 and cfg["checkpoint"].endswith("policy.safetensors")
+    assert cfg["cpu_s"] == pytest.approx(
+        60 * read_card("tiny", tmp_path / "shipped")["cpu_minutes"]
+    )
+
+    monkeypatch.chdir(tmp_path)  # no file named "navigation" here: the name is the policy's
+    shipped = shipped_or_path(Path("navigation"))
+    assert (shipped / "policy.safetensors").is_file()
+    heading = resolve_train_config(
+        "navigation", "ppo", preset="cpu", net="lean", env_kwargs={"obs_mode": "us_heading"}
+    )
+    source = warm_start_source(shipped, heading)
+    assert source["steps"] == read_card("navigation")["steps_per_env"]
+    assert source["cpu_s"] == pytest.approx(60 * read_card("navigation")["cpu_minutes"])
+    with pytest.raises(ValueError, match="trained with --obs-mode us_heading"):
+        warm_start_source(
+            shipped, resolve_train_config("navigation", "ppo", preset="cpu", net="lean")
+        )
+    with pytest.raises(FileNotFoundError, match="nor a shipped policy's folder or name"):
+        warm_start_source(Path("no-such-policy"), heading)

@@ -65,6 +65,7 @@ from sonogym.agents.networks import log_std_ceiling, make_models
 from sonogym.envs.registry import check_task_name, get_task, make_vec
 from sonogym.progress import progress_bar
 from sonogym.runs import (
+    SHIPPED_WEIGHTS,
     RunFolder,
     TrainingInterrupted,
     atomic_torch_save,
@@ -445,17 +446,32 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
 
 def warm_start_source(path: str | Path, cfg: TrainConfig) -> dict[str, Any]:
     """Where a run's weights start (``init_from``): an RL checkpoint of a ``sonogym train`` run
-    of the same task and network, with that run's step count and CPU/wall seconds by then
-    (None where its ``times.json`` lacks them). Refuses anything else, naming why."""
+    (``RUN/checkpoints/agent_<t>.pt``) or a shipped policy's folder
+    (``sonogym.evaluation.pretrained``; ``sonogym train`` takes its name), of the same task,
+    network and observation, with its step count and CPU/wall seconds by then (None where
+    unknown). Refuses anything else, naming why."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"--init-from {path}: no such checkpoint file")
-    run = path.parent.parent
-    m = re.fullmatch(RL_RUN.checkpoint_name, path.name)
-    if m is None or path.parent.name != "checkpoints" or not (run / "config.json").is_file():
-        raise ValueError(
-            f"--init-from {path}: not a checkpoint of a sonogym train run; pass "
-            f"RUN/checkpoints/{RL_RUN.checkpoint_hint}"
+    if path.is_file():
+        run = path.parent.parent
+        m = re.fullmatch(RL_RUN.checkpoint_name, path.name)
+        if m is None or path.parent.name != "checkpoints" or not (run / "config.json").is_file():
+            raise ValueError(
+                f"--init-from {path}: not a checkpoint of a sonogym train run; pass "
+                f"RUN/checkpoints/{RL_RUN.checkpoint_hint} or a shipped policy's name"
+            )
+        steps = int(m.group(1))
+        spent = read_times(path.parent).get(steps, {})
+        cpu_s, wall_s = spent.get("cpu_s"), spent.get("wall_s")
+    else:
+        run, path = _shipped_policy(path)
+        card = (
+            json.loads((run / "model_card.json").read_text())
+            if (run / "model_card.json").is_file()
+            else {}
+        )
+        steps = card.get("steps_per_env")
+        cpu_s, wall_s = (
+            None if card.get(k) is None else 60.0 * card[k] for k in ("cpu_minutes", "wall_minutes")
         )
     parent = load_train_config(run)
     if parent.task != cfg.task:
@@ -474,12 +490,20 @@ def warm_start_source(path: str | Path, cfg: TrainConfig) -> dict[str, Any]:
                 f"--init-from {path}: trained with {flag} {theirs}; this run uses {flag} "
                 f"{ours}. Pass {flag} {theirs}"
             )
-    steps = int(m.group(1))
-    spent = read_times(path.parent).get(steps, {})
     return {
         "checkpoint": str(path.resolve()), "run": str(run.resolve()), "steps": steps,
-        "cpu_s": spent.get("cpu_s"), "wall_s": spent.get("wall_s"),
+        "cpu_s": cpu_s, "wall_s": wall_s,
     }  # fmt: skip
+
+
+def _shipped_policy(given: Path) -> tuple[Path, Path]:
+    """(folder, weights) of a shipped policy's folder (``sonogym train`` resolves a name)."""
+    if given.is_dir() and (given / SHIPPED_WEIGHTS).is_file() and (given / "config.json").is_file():
+        return given, given / SHIPPED_WEIGHTS
+    raise FileNotFoundError(
+        f"--init-from {given}: no such checkpoint file, nor a shipped policy's folder or name "
+        "(sonogym eval --pretrained list)"
+    )
 
 
 def warm_start(agent, source: dict[str, Any], adapter: SkrlEnvAdapter) -> None:

@@ -21,11 +21,17 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from sonogym.runs import RunFolder, atomic_write_json, atomic_write_text, read_json
+from sonogym.runs import (
+    SHIPPED_WEIGHTS,
+    RunFolder,
+    atomic_write_json,
+    atomic_write_text,
+    read_json,
+)
 
 #: Where shipped policies live (inside the installed package).
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
-WEIGHTS = "policy.safetensors"
+WEIGHTS = SHIPPED_WEIGHTS
 CARD = "model_card.json"
 
 

@@ -335,8 +335,8 @@ def check_setting_key(key: str, what: str = "setting") -> None:
     ok = key in TASK_KEYS or (head in ("ppo", "a2c") and field) or (head == "env" and field)
     if not ok:
         raise ValueError(
-            f"unknown {what} {key!r}: use one of {list(TASK_KEYS)}, ppo.<field>, a2c.<field> "
-            "or env.<option> (seeds: --seed / --seeds)"
+            f"unknown {what} {key!r}: use one of {list(TASK_KEYS)}, ppo.<field> or "
+            "a2c.<field> (in a sweep grid also env.<option>; seeds: --seed / --seeds)"
         )
 
 

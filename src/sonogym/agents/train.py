@@ -128,8 +128,9 @@ def train(
             update boundaries; TensorBoard once per update).
         settings: training settings by name (``configs.apply_settings``: ``final_log_std``,
             ``ppo.learning_rate``, ``env.<option>``, ...), applied last.
-        init_from: an RL checkpoint (``RUN/checkpoints/agent_<t>.pt``) whose weights the run
-            starts from instead of random ones (``warm_start_source``); fine-tuning.
+        init_from: an RL checkpoint (``RUN/checkpoints/agent_<t>.pt``) or a shipped policy's
+            folder whose weights the run starts from instead of random ones
+            (``warm_start_source``); fine-tuning.
         progress: show the progress with the ETA (``sonogym.progress``: a bar on a terminal,
             a line every few percent in a log); log: where the start summary goes (default:
             printed when ``progress``).
@@ -284,11 +285,7 @@ def _run_training(
         warm_start(agent, cfg.init_from, adapter)
     resolved = {
         **cfg.to_dict(),
-        "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
-        "action_space": {
-            "low": adapter.action_space.low.tolist(),
-            "high": adapter.action_space.high.tolist(),
-        },
+        **_interface(adapter),
         "checkpoint_interval": ckpt_interval,
         "write_interval": write_interval,
         "resumed_from": start,
@@ -464,11 +461,8 @@ def warm_start_source(path: str | Path, cfg: TrainConfig) -> dict[str, Any]:
         cpu_s, wall_s = spent.get("cpu_s"), spent.get("wall_s")
     else:
         run, path = _shipped_policy(path)
-        card = (
-            json.loads((run / "model_card.json").read_text())
-            if (run / "model_card.json").is_file()
-            else {}
-        )
+        card_path = run / "model_card.json"
+        card = read_json(card_path, "shipped policy") if card_path.is_file() else {}
         steps = card.get("steps_per_env")
         cpu_s, wall_s = (
             None if card.get(k) is None else 60.0 * card[k] for k in ("cpu_minutes", "wall_minutes")
@@ -506,24 +500,36 @@ def _shipped_policy(given: Path) -> tuple[Path, Path]:
     )
 
 
+def _interface(adapter: SkrlEnvAdapter) -> dict[str, Any]:
+    """What a policy reads and writes, as ``config.json`` records it: the observation layout
+    and the action box (JSON values)."""
+    return to_jsonable({
+        "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
+        "action_space": {
+            "low": adapter.action_space.low.tolist(),
+            "high": adapter.action_space.high.tolist(),
+        },
+    })  # fmt: skip
+
+
 def warm_start(agent, source: dict[str, Any], adapter: SkrlEnvAdapter) -> None:
     """Load the networks and standardisers of ``source["checkpoint"]`` into ``agent`` (its
     optimiser starts fresh, at the run's learning rate); the run must observe and act exactly
     as the source run did."""
     run = Path(source["run"])
-    theirs = read_json(run / "config.json", "`sonogym train` run folder", ("obs_layout",))
-    ours = {"keys": list(adapter.layout.keys), "shapes": [list(s) for s in adapter.layout.shapes]}
-    if theirs["obs_layout"] != ours:
+    keys = ("obs_layout", "action_space")
+    theirs = read_json(run / "config.json", "`sonogym train` run folder", keys)
+    ours = _interface(adapter)  # as this run's config.json will record them
+    if theirs["obs_layout"] != ours["obs_layout"]:
         raise ValueError(
             f"--init-from {source['checkpoint']}: that run observed {theirs['obs_layout']}, "
-            f"this one observes {ours}; use the same --obs-mode, --obs-downsample and env "
-            "options that shape the observation"
+            f"this one observes {ours['obs_layout']}; use the same --obs-mode, --obs-downsample "
+            "and env options that shape the observation"
         )
-    bounds = [adapter.action_space.low.tolist(), adapter.action_space.high.tolist()]
-    if [theirs["action_space"]["low"], theirs["action_space"]["high"]] != bounds:
+    if theirs["action_space"] != ours["action_space"]:
         raise ValueError(
             f"--init-from {source['checkpoint']}: that run's action box "
-            f"{theirs['action_space']} differs from this one's {bounds}"
+            f"{theirs['action_space']} differs from this one's {ours['action_space']}"
         )
     state = read_checkpoint(source["checkpoint"], agent.device)
     for name, module in agent.checkpoint_modules.items():

@@ -190,7 +190,8 @@ def morphometry(
     ] = None,
 ) -> None:
     """Measure a phantom population and a real subject the same way (spine morphometry, soft
-    tissue depths, bone-hit profiles at the L4 goal views) and write the comparison."""
+    tissue depths, bone-hit and skin-to-muscle profiles at the L4 goal views) and write the
+    comparison."""
     from sonogym.viz.morphometry import write_report
 
     _check_positive(("--seeds", seeds))

@@ -4,6 +4,7 @@ real subject lies inside the phantom population's 5-95 % range on every value.""
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from sonogym.anatomy.morphometry import (
     PROFILE_OFFSETS,
     bone_hit_depths,
     measure,
+    muscle_profile,
     skin_distance,
 )
 from sonogym.anatomy.phantom import GENERATOR_VERSION, _level_variation
@@ -113,10 +115,32 @@ def test_the_real_subject_lies_inside_the_phantom_population():
     real = load_totalsegmentator(SUBJECT, spacing=pop["subject_spacing_m"], target="L4")
     values = measure(real).flat()
     expected = [f"{lv} {m}" for lv in LEVELS for m in LEVEL_MEASURES]
-    expected += [f"{v} {u:+.0f}" for v in ("transverse", "sagittal") for u in PROFILE_OFFSETS]
+    expected += [
+        f"{v} {u:+.0f}" for v in ("transverse", "sagittal", "muscle") for u in PROFILE_OFFSETS
+    ]
     assert sorted(values) == sorted(expected)
     assert values == pytest.approx(pop["subject_values"], abs=1e-6)  # the table's real column
     bounds = population_bounds(pop["rows"])
     assert outside(values, bounds) == [], {
         k: (values[k], bounds[k]) for k in outside(values, bounds)
     }
+
+
+def test_muscle_profile_stops_at_bone_on_a_known_slab():
+    """Muscle 15-28 mm deep beside a bone plate (30-35 mm, gap at |x| < 5 mm), more muscle below
+    the plate: a beam reads the muscle above the plate, bone first beside the gap, and the deep
+    muscle only through the gap."""
+    p = _slab_patient()
+    lab = p.labels.numpy().copy()
+    ax = [np.arange(k) * 0.001 - 0.04 for k in lab.shape]
+    x, y, _ = np.meshgrid(*ax, indexing="ij")
+    lab[(y >= 0.015) & (y < 0.028) & (np.abs(x) >= 0.008)] = 86
+    lab[y >= 0.037] = 87
+    p = Patient(ct=p.ct, labels=torch.from_numpy(lab), affine=p.affine)
+    skin = p.skin.height(torch.tensor(0.0), torch.tensor(0.0)).item() * 1e3
+    frame = SimpleNamespace(centre=np.zeros(3))
+    u = [-20.0, -6.5, 0.0, 6.5, 20.0]
+    d = muscle_profile(p, frame, u)
+    assert abs(d[0] - (15.0 - skin)) <= 0.5 and abs(d[4] - (15.0 - skin)) <= 0.5
+    assert d[1] == d[3] == 100.0  # bone before any muscle
+    assert abs(d[2] - (37.0 - skin)) <= 0.5  # through the gap, the muscle under the plate

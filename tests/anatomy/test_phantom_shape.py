@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from sonogym.anatomy import PhantomParams, make_phantom
 from sonogym.anatomy import labels as L
-from sonogym.anatomy.morphometry import bone_hit_depths, measure
+from sonogym.anatomy.morphometry import PROFILE_DEPTH, bone_hit_depths, measure, muscle_profile
 
 SMALL = PhantomParams(spacing=0.002)
 SEEDS = (0, 3, 7)
@@ -152,3 +152,27 @@ def test_the_iliac_crests_rise_from_beside_the_sacrum_to_beside_l4_l5(phantoms):
             # the PSIS: medial, behind the sacrum's upper part, well below the summit
             assert 30.0 <= abs(psis[0]) <= 60.0, (p.name, hip, psis)
             assert psis[2] < summit[2] - 20.0
+
+
+def test_the_paraspinal_muscles_rise_behind_the_tips_with_a_fat_cleft_over_them(phantoms):
+    """Transverse L4 goal view: two convex muscle backs meeting in a V over the spinous tip, as
+    on real CT (where the beams' first tissue under the fat is muscle beside the tip and bone
+    at it)."""
+    u = np.arange(-35.0, 35.0 + 1e-9, 1.0)
+    for p in phantoms:
+        f = p.landmarks.vertebra("L4")
+        x, z = float(f.centre[0]), float(f.centre[2])
+        bone = bone_hit_depths(p, x, z, math.pi, u)
+        muscle = muscle_profile(p, f, u)
+        a = b = int(np.argmin(bone))  # a beam on the spinous tip
+        assert muscle[a] == PROFILE_DEPTH, p.name  # bone before any muscle
+        while a > 0 and muscle[a - 1] == PROFILE_DEPTH:  # the beams that meet no muscle
+            a -= 1
+        while b < len(u) - 1 and muscle[b + 1] == PROFILE_DEPTH:
+            b += 1
+        for lobe in (muscle[: max(a - 8, 0)], muscle[b + 9 :]):
+            # each lobe's back rises behind the tip ...
+            assert lobe.size and lobe.min() < bone[a] - 5.0, (p.name, lobe.min(), bone[a])
+        for beside in (muscle[max(a - 2, 0) : a], muscle[b + 1 : b + 3]):
+            # ... and the muscle right beside the cleft lies deeper than the lobes' tops (the V)
+            assert beside.size and beside.max() > muscle.min() + 5.0, (p.name, beside)

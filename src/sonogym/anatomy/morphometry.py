@@ -44,6 +44,11 @@ skin's inward normal; transverse: yaw pi, sagittal: yaw pi/2; ``SkinSurface.surf
   beam's first sample (every 0.25 mm, nearest voxel) whose label is a bone
   (``labels.BONE_IDS``), or ``PROFILE_DEPTH`` (the image's 100 mm) when it meets no bone within
   the image.
+* ``muscle_profile`` (transverse view only): the skin-to-paraspinal-muscle depth across the
+  probe's width, the same beams: the depth of the first sample labelled ``autochthon_left`` or
+  ``autochthon_right`` before any bone, or ``PROFILE_DEPTH`` when bone (or nothing) comes first.
+  It shows the muscles' convex backs and the fat-filled cleft between them over the spinous
+  tip, the arches a transverse image shows above the bone.
 """
 
 from __future__ import annotations
@@ -72,6 +77,10 @@ LEVEL_MEASURES = (
 )
 #: Goal views: name -> yaw (rad) of the probe's lateral axis in the frontal plane.
 GOAL_VIEWS = {"transverse": math.pi, "sagittal": math.pi / 2}
+#: Name of the skin-to-muscle profile at the transverse goal view (a ``profiles`` key).
+MUSCLE_VIEW = "muscle"
+#: Label ids of the paraspinal muscles (TotalSegmentator ``autochthon_left/right``).
+PARASPINAL_IDS = (86, 87)
 #: Lateral offsets (mm) along the image's lateral axis of the reported bone-hit profile.
 PROFILE_OFFSETS = tuple(float(u) for u in range(-35, 36, 5))
 #: Depth (mm) of the image: a beam meeting no bone within it reads this depth.
@@ -122,6 +131,7 @@ def measure(patient, levels: tuple[str, ...] = LEVELS) -> Morphometry:
     f4 = lm.vertebra("L4")
     for view, yaw in GOAL_VIEWS.items():
         profiles[view] = tuple(float(d) for d in bone_profile(patient, f4, yaw))
+    profiles[MUSCLE_VIEW] = tuple(float(d) for d in muscle_profile(patient, f4))
     return Morphometry(patient.name, rows, profiles)
 
 
@@ -227,6 +237,18 @@ def bone_profile(patient, frame: VertebraFrame, yaw: float) -> np.ndarray:
     return bone_hit_depths(patient, frame.centre[0], frame.centre[2], yaw, PROFILE_OFFSETS)
 
 
+def muscle_profile(patient, frame: VertebraFrame, offsets=PROFILE_OFFSETS) -> np.ndarray:
+    """(len(offsets),) skin-to-paraspinal-muscle depths (mm) of the transverse view above
+    ``frame``'s body centroid at lateral ``offsets`` (mm) (module docstring)."""
+    lab, ok = _beam_labels(
+        patient, frame.centre[0], frame.centre[2], GOAL_VIEWS["transverse"], offsets,
+        PROFILE_DEPTH,
+    )  # fmt: skip
+    before_bone = np.cumsum(np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8)) & ok, 1) == 0
+    muscle = np.isin(lab, PARASPINAL_IDS) & ok & before_bone
+    return np.where(muscle.any(1), muscle.argmax(1) * _STEP, PROFILE_DEPTH).astype(np.float64)
+
+
 def bone_hit_depths(
     patient,
     x: float,
@@ -237,6 +259,16 @@ def bone_hit_depths(
 ) -> np.ndarray:
     """First-bone-hit depth (mm) along the beam for lateral ``offsets`` (mm) of the probe pose on
     the skin at (x, z) (m) with ``yaw`` (rad) and no tilt; ``max_depth`` where no bone is met."""
+    lab, ok = _beam_labels(patient, x, z, yaw, offsets, max_depth)
+    bone = np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8)) & ok
+    first = np.where(bone.any(1), bone.argmax(1) * _STEP, max_depth)
+    return first.astype(np.float64)
+
+
+def _beam_labels(patient, x, z, yaw, offsets, max_depth) -> tuple[np.ndarray, np.ndarray]:
+    """(U, D) labels of the beams of the probe pose on the skin at (x, z) with ``yaw``, sampled
+    every ``_STEP`` mm to ``max_depth`` (nearest voxel), and whether each sample is in the
+    volume."""
     pos, rot = patient.skin.surface_pose(
         torch.tensor([float(x)], dtype=torch.float64),
         torch.tensor([float(z)], dtype=torch.float64),
@@ -250,7 +282,4 @@ def bone_hit_depths(
     shape = np.array(patient.shape)
     ok = ((ijk >= 0) & (ijk < shape)).all(-1)
     ijk = np.clip(ijk, 0, shape - 1)
-    lab = patient.labels.numpy()[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
-    bone = np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8)) & ok
-    first = np.where(bone.any(1), bone.argmax(1) * _STEP, max_depth)
-    return first.astype(np.float64)
+    return patient.labels.numpy()[ijk[..., 0], ijk[..., 1], ijk[..., 2]], ok

@@ -6,10 +6,12 @@ map uses TotalSegmentator v2 ids (plus project ids >= 118) and whose CT is in Ho
 with partial-volume edges and CT noise. Bones come from ``phantom_spine`` (each vertebra built
 from a kidney-shaped body, pedicles, a continuous arch of laminae and spinous process, facet
 joints and transverse processes; sacrum with its median crest; iliac crests beside L4-L5). Over
-them lie the paraspinal muscles (autochthon) under the thoracolumbar fascia, the supra- and
-interspinous ligaments in the midline, the ligamentum flavum behind the canal, subcutaneous fat
-thicker on the flanks and over the midline furrow, and skin. Dimensions and their spread follow
-published adult morphometry (docs/anatomy.md, ultrasound_physics.md §4).
+them lie the paraspinal muscles (autochthon) under the thoracolumbar fascia, convex lobes in
+fat-lined fascial envelopes that meet the midline down at the spinous tips with fat in the cleft
+between them, the supra- and interspinous ligaments in the midline, the ligamentum flavum behind
+the canal, subcutaneous fat thicker on the flanks and over the midline furrow, and skin.
+Dimensions and their spread follow published adult morphometry (docs/anatomy.md,
+ultrasound_physics.md §4).
 
 Variability comes from named parameters (``PhantomParams``); any left ``None`` is drawn from the
 seed, and per-level size changes and spinous-tip deviations are drawn from the seed as well
@@ -45,7 +47,7 @@ from sonogym.anatomy.sdf import (
 )
 
 #: Bump when the generator's output changes, so stale cache entries are not reused.
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 10
 
 # ----------------------------------------------------------------------------- parameters
 
@@ -74,6 +76,9 @@ _SAMPLED: dict[str, tuple[float, float]] = {
     "back_curvature": (0.3, 0.9),  # unitless
     "gluteal": (0.0, 0.040),  # m
     "trunk_roll": (-0.12, 0.12),  # rad
+    "muscle_hu": (10.0, 50.0),  # HU (drawn last: the earlier draws of a seed stay as they were)
+    "multifidus_width": (0.40, 0.60),  # unitless, share of the paraspinal width
+    "muscle_cleft": (0.002, 0.012),  # m
 }
 
 
@@ -104,6 +109,9 @@ class PhantomParams:
     back_curvature: float | None = None  # unitless, share of the lordotic curve the skin follows
     gluteal: float | None = None  # m, fat behind the sacrum rising from L3 (the buttocks' slope)
     trunk_roll: float | None = None  # rad, the patient rolled (trunk and spine) on the table
+    muscle_hu: float | None = None  # HU of the paraspinal muscles (lower: fatty infiltration)
+    multifidus_width: float | None = None  # unitless, multifidus' share of the paraspinal width
+    muscle_cleft: float | None = None  # m, width of the fat-filled cleft over the spinous tips
     level_spread: float = 0.04  # unitless, std of the per-level size changes (drawn per level)
     disc_spread: float = 0.12  # unitless, std of the per-level disc height changes
     lamina_spread: float = 0.0025  # m, std of how far down each level's laminae reach
@@ -169,6 +177,10 @@ _HU = {
 _SKIN_MM = 2.5
 _MIN_COVER_MM = 2.0  # fat between the skin and a bone that reaches the back's surface
 _FASCIA_MM = 1.5  # thoracolumbar fascia over the paraspinal muscles
+_TIP_HALF_MM = 5.0  # half the spinous tip's width: the cleft over it is at least this wide
+_LOBE_MM = 6.0  # how far the muscle lobes rise behind the spinous tips, beyond their cover
+_ENVELOPE_MM = 1.5  # the paraspinal muscles' fascial envelope, with the fat plane lining it
+_ENVELOPE_HU = -60.0  # a thin fascia in fat: on CT only the fat shows
 _FURROW_SIGMA = 14.0  # mm, half-width scale of the midline furrow between the muscle bulges
 
 
@@ -394,7 +406,7 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
         cv.paint(sl, torso, L.SKIN, _HU["skin"])
         cv.paint(sl, torso + _SKIN_MM, L.BODY_TRUNC, _HU["soft"])
         lat = 1.0 + p.fat_lateral * ((xr - xs_r).clamp(-120, 120) / 80.0) ** 2
-        fat_x = fat * lat + buttock(z) + (1 - furrow) * bulge * mid
+        fat_x = fat * lat + buttock(z)  # (the fat over the midline fills the muscles' cleft)
         under_fat = torso + _SKIN_MM + fat_x  # < 0 below the fat
         # Paraspinal muscles: from the midline to their lateral border, from under the fascia
         # to the front of the transverse processes.
@@ -402,10 +414,33 @@ def make_phantom(seed: int = 0, params: PhantomParams | None = None) -> Patient:
         y_top = yp - 5.0
         cy, ry = (y_front + y_top) / 2, (y_front - y_top) / 2
         width = 64.0 * m
+        # Their backs are convex lobes, one each side, that meet the midline down at the
+        # spinous tips: fat fills the cleft between them over the tips, and the fascia follows
+        # the lobes (in a transverse image two arches meeting in a V on the spinous tip).
+        u = (xm - xs).abs()
+        lobe_depth = _LOBE_MM + cover(z) + 0.5 * bulge
+        inner = _TIP_HALF_MM + p.muscle_cleft * 1e3 / 2  # the lobes' medial edge
+        half = (width - inner) / 2
+        lobe = superellipse2(u - inner - half, ym - yt - 5.0, half, lobe_depth + 5.0, 4.0)
+        deep = torch.minimum(torch.minimum(lobe, yt + 2.0 - ym), width + 12.0 - u)
+        under_fat = torch.maximum(under_fat, deep)
+        # Each muscle sits in its own fascial compartment: an envelope on its medial, lateral
+        # and deep sides (the fat-lined fascia that outlines the muscle in transverse images),
+        # painted first so that the muscles meet at the midline without it.
+        muscles = []
         for side, lab in ((1.0, 87), (-1.0, 86)):
             d = _round_rect(xm - xs - side * width / 2, ym - cy, width / 2, ry, 15.0)
-            d = torch.maximum(d, -side * (xm - xs))
-            cv.paint(sl, torch.maximum(d, under_fat + _FASCIA_MM), lab, _HU["muscle"])
+            d = torch.maximum(torch.maximum(d, -side * (xm - xs)), under_fat + _FASCIA_MM)
+            cv.paint(sl, d - _ENVELOPE_MM, L.THORACOLUMBAR_FASCIA, _ENVELOPE_HU)
+            muscles.append((d, lab))
+        # The fascial septum between multifidus (medial, in the laminar groove) and the erector
+        # spinae: from under the fascia, converging medially to the facets at the deep end.
+        depth_frac = ((ym - y_top) / (y_front - y_top)).clamp(0, 1)
+        reach = width * p.multifidus_width * (1.0 - 0.35 * depth_frac**2)
+        for (d, lab), side in zip(muscles, (1.0, -1.0), strict=True):
+            cv.paint(sl, d, lab, p.muscle_hu)
+            septum = ((xm - xs) * side - reach).abs() - _ENVELOPE_MM / 2
+            cv.paint(sl, torch.maximum(septum, d), L.THORACOLUMBAR_FASCIA, _ENVELOPE_HU)
         fascia = torch.maximum(under_fat, -(under_fat + _FASCIA_MM))
         fascia = torch.maximum(fascia, (xm - xs).abs() - (width + 8.0))
         cv.paint(sl, fascia, L.THORACOLUMBAR_FASCIA, _HU["ligament"])

@@ -99,6 +99,17 @@ def table_markdown(real: dict[str, float], bounds: dict, n: int) -> str:
     for view in M.GOAL_VIEWS:
         for u in M.PROFILE_OFFSETS:
             lines.append(row(view, f"{u:+.0f}", f"{view} {u:+.0f}"))
+    lines += [
+        "",
+        "Skin to paraspinal muscle (mm) at the transverse L4 goal view, across the probe's width "
+        f"(the first muscle sample before any bone; {M.PROFILE_DEPTH:.0f} = bone or nothing "
+        "first).",
+        "",
+        "| view | u | real | phantoms | 5-95 % | inside |",
+        "|---|---|---|---|---|---|",
+    ]
+    for u in M.PROFILE_OFFSETS:
+        lines.append(row("transverse", f"{u:+.0f}", f"{M.MUSCLE_VIEW} {u:+.0f}"))
     return "\n".join(lines) + "\n"
 
 

@@ -337,19 +337,33 @@ def test_init_from_a_shipped_policy(tmp_path, monkeypatch):
     assert cfg["cpu_s"] == pytest.approx(
         60 * read_card("tiny", tmp_path / "shipped")["cpu_minutes"]
     )
+    # shipped again, the fine-tuned policy's card names its source, without local paths
+    again = export_pretrained(tuned, "tuned", root=tmp_path / "shipped")
+    card = read_card("tuned", tmp_path / "shipped")
+    assert card["init_from"] == {
+        "run": "tiny",
+        "checkpoint": "policy.safetensors",
+        "steps_per_env": 32,
+        "cpu_minutes": pytest.approx(cfg["cpu_s"] / 60, abs=0.05),
+    }
+    assert str(tmp_path) not in (again / "config.json").read_text()
+    assert "fine-tuned from policy.safetensors of run tiny" in (again / "model_card.md").read_text()
 
     monkeypatch.chdir(tmp_path)  # no file named "navigation" here: the name is the policy's
     shipped = shipped_or_path(Path("navigation"))
     assert (shipped / "policy.safetensors").is_file()
-    heading = resolve_train_config(
-        "navigation", "ppo", preset="cpu", net="lean", env_kwargs={"obs_mode": "us_heading"}
-    )
-    source = warm_start_source(shipped, heading)
+    same = resolve_train_config(
+        "navigation", "ppo", preset="cpu", net="lean",
+        env_kwargs={"obs_mode": read_card("navigation")["obs_mode"]},
+    )  # fmt: skip
+    source = warm_start_source(shipped, same)
     assert source["steps"] == read_card("navigation")["steps_per_env"]
     assert source["cpu_s"] == pytest.approx(60 * read_card("navigation")["cpu_minutes"])
-    with pytest.raises(ValueError, match="trained with --obs-mode us_heading"):
+    with pytest.raises(
+        ValueError, match=f"trained with --obs-mode {same.rl.env_kwargs['obs_mode']}"
+    ):
         warm_start_source(
             shipped, resolve_train_config("navigation", "ppo", preset="cpu", net="lean")
         )
     with pytest.raises(FileNotFoundError, match="nor a shipped policy's folder or name"):
-        warm_start_source(Path("no-such-policy"), heading)
+        warm_start_source(Path("no-such-policy"), same)

@@ -111,7 +111,10 @@ def export_pretrained(
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     export_acting_weights(checkpoint, tmp / WEIGHTS)
-    atomic_write_json(tmp / "config.json", cfg)
+    shipped_cfg = dict(cfg)
+    if cfg.get("init_from"):
+        shipped_cfg["init_from"] = _source(cfg["init_from"])  # names, not this machine's paths
+    atomic_write_json(tmp / "config.json", shipped_cfg)
     times = read_times(run / "checkpoints").get(step, {}) if step is not None else {}
     card = _card(name, cfg, run, checkpoint, step, times, notes)
     atomic_write_json(tmp / CARD, card)
@@ -153,11 +156,35 @@ def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[st
         "cpu_minutes": round(times["cpu_s"] / 60, 1) if "cpu_s" in times else None,
         "wall_minutes": round(times["wall_s"] / 60, 1) if "wall_s" in times else None,
         "checkpoint": checkpoint.name,
+        # a fine-tuned run: where its weights started (their steps are not in steps_per_env;
+        # their CPU time is in cpu_minutes)
+        "init_from": _source(cfg.get("init_from")),
         "evaluations": evals,
         "headline": _headline(cfg["task"], evals),
         "notes": notes,
         "versions": cfg.get("versions", {}),
     }
+
+
+def _source(init: dict | None) -> dict | None:
+    """The run a fine-tuned run started from, by names only (no local paths in a card)."""
+    if not init:
+        return None
+    return {
+        "run": Path(init["run"]).name,
+        "checkpoint": Path(init["checkpoint"]).name,
+        "steps_per_env": init.get("steps"),
+        "cpu_minutes": round(init["cpu_s"] / 60, 1) if "cpu_s" in init else None,
+    }
+
+
+def _init_from_line(init: dict | None) -> list[str]:
+    if not init:
+        return []
+    return [
+        f"- fine-tuned from {init['checkpoint']} of run {init['run']} ({init['steps_per_env']} "
+        f"env steps per env, {init['cpu_minutes']} CPU minutes, counted above)"
+    ]
 
 
 def _headline(task: str, evals: dict) -> str:
@@ -185,6 +212,7 @@ def card_markdown(card: dict[str, Any]) -> str:
         f"- {card.get('steps_per_env')} env steps per env ({card.get('steps_total')} in all), "
         f"{card.get('cpu_minutes')} CPU minutes ({card.get('wall_minutes')} wall); checkpoint "
         f"{card['checkpoint']}",
+        *_init_from_line(card.get("init_from")),
         f"- evaluate: `sonogym eval --pretrained {card['name']} --out DIR` (add `--patients` "
         "for your own subjects)",
         "",

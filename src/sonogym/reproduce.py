@@ -160,11 +160,17 @@ _RECIPES = (
         "population",
         "Across a population (navigation on held-out phantoms and a real subject)",
         (
-            "sonogym train --task navigation --algo ppo --preset cpu --patients 100-131 "
-            "--obs-mode us_heading --net lean --env-option imaging_randomization=true --seed 0 "
-            "--steps 35328 --checkpoint-every 2944 --out runs/nav-pop32-v2-s0",
-            "sonogym eval --run runs/nav-pop32-v2-s0 --envs 50 --protocol odt-patient --held-out 5",
-            "sonogym eval --run runs/nav-pop32-v2-s0 --envs 50 "
+            "sonogym train --task navigation --algo ppo --preset cpu --patients 100-163 "
+            "--obs-mode us_scan --net lean --env-option imaging_randomization=true --seed 0 "
+            "--steps 23552 --checkpoint-every 2944 --out runs/nav-pop64-scan-s0",
+            "sonogym train --task navigation --algo ppo --preset cpu --patients 100-163 "
+            "--obs-mode us_scan --net lean --env-option imaging_randomization=true --seed 0 "
+            "--steps 6400 --checkpoint-every 1600 "
+            "--init-from runs/nav-pop64-scan-s0/checkpoints/agent_23552.pt "
+            "--out runs/nav-pop64-lobes-ft-s0",
+            "sonogym eval --run runs/nav-pop64-lobes-ft-s0 --envs 50 --protocol odt-patient "
+            "--held-out 5",
+            "sonogym eval --run runs/nav-pop64-lobes-ft-s0 --envs 50 "
             "--patients tests/data/totalsegmentator_example --name real-subject",
         ),
     ),

@@ -322,7 +322,7 @@ def test_init_from_a_shipped_policy(tmp_path, monkeypatch):
     from sonogym.agents.configs import resolve_train_config
     from sonogym.agents.train import warm_start_source
     from sonogym.cli import shipped_or_path
-    from sonogym.evaluation.pretrained import export_pretrained, read_card
+    from sonogym.evaluation.pretrained import export_pretrained, listing, read_card
 
     src = tmp_path / "src"
     _tiny("navigation", "ppo", src, steps=32)
@@ -348,6 +348,7 @@ def test_init_from_a_shipped_policy(tmp_path, monkeypatch):
     }
     assert str(tmp_path) not in (again / "config.json").read_text()
     assert "fine-tuned from policy.safetensors of run tiny" in (again / "model_card.md").read_text()
+    assert "(fine-tuned from tiny/policy.safetensors)" in listing(tmp_path / "shipped")
 
     monkeypatch.chdir(tmp_path)  # no file named "navigation" here: the name is the policy's
     shipped = shipped_or_path(Path("navigation"))

@@ -74,10 +74,13 @@ def listing(root: str | Path | None = None) -> str:
     for name in available(root):
         card = read_card(name, root)
         head = card.get("headline", "")
+        src = card.get("init_from")
+        tuned = f" (fine-tuned from {src['run']}/{src['checkpoint']})" if src else ""
         lines.append(
             f"{name}: {card.get('task', '?')} {card.get('algo', '?')}, observation "
-            f"{card.get('obs_mode') or 'default'}, {card.get('steps_total', '?')} env steps, "
-            f"{card.get('cpu_minutes', '?')} CPU min" + (f"; {head}" if head else "")
+            f"{card.get('obs_mode') or 'default'}, {card.get('steps_total', '?')} env steps"
+            f"{tuned}, {card.get('cpu_minutes', '?')} CPU min in all"
+            + (f"; {head}" if head else "")
         )
     return "\n".join(lines) if lines else "no pretrained policies ship with this sonogym"
 

@@ -244,9 +244,8 @@ def muscle_profile(patient, frame: VertebraFrame, offsets=PROFILE_OFFSETS) -> np
         patient, frame.centre[0], frame.centre[2], GOAL_VIEWS["transverse"], offsets,
         PROFILE_DEPTH,
     )  # fmt: skip
-    before_bone = np.cumsum(np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8)) & ok, 1) == 0
-    muscle = np.isin(lab, PARASPINAL_IDS) & ok & before_bone
-    return np.where(muscle.any(1), muscle.argmax(1) * _STEP, PROFILE_DEPTH).astype(np.float64)
+    before_bone = np.cumsum(_is_bone(lab) & ok, 1) == 0
+    return _first_depth(np.isin(lab, PARASPINAL_IDS) & ok & before_bone, PROFILE_DEPTH)
 
 
 def bone_hit_depths(
@@ -260,9 +259,17 @@ def bone_hit_depths(
     """First-bone-hit depth (mm) along the beam for lateral ``offsets`` (mm) of the probe pose on
     the skin at (x, z) (m) with ``yaw`` (rad) and no tilt; ``max_depth`` where no bone is met."""
     lab, ok = _beam_labels(patient, x, z, yaw, offsets, max_depth)
-    bone = np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8)) & ok
-    first = np.where(bone.any(1), bone.argmax(1) * _STEP, max_depth)
-    return first.astype(np.float64)
+    return _first_depth(_is_bone(lab) & ok, max_depth)
+
+
+def _is_bone(lab: np.ndarray) -> np.ndarray:
+    return np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8))
+
+
+def _first_depth(hit: np.ndarray, max_depth: float) -> np.ndarray:
+    """Per beam (rows of ``hit``, samples every ``_STEP`` mm), the depth (mm) of its first hit,
+    ``max_depth`` where it has none."""
+    return np.where(hit.any(1), hit.argmax(1) * _STEP, max_depth).astype(np.float64)
 
 
 def _beam_labels(patient, x, z, yaw, offsets, max_depth) -> tuple[np.ndarray, np.ndarray]:

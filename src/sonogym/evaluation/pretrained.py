@@ -119,7 +119,7 @@ def export_pretrained(
         shipped_cfg["init_from"] = _source(cfg["init_from"])  # names, not this machine's paths
     atomic_write_json(tmp / "config.json", shipped_cfg)
     times = read_times(run / "checkpoints").get(step, {}) if step is not None else {}
-    card = _card(name, cfg, run, checkpoint, step, times, notes)
+    card = _card(name, shipped_cfg, run, checkpoint, step, times, notes)
     atomic_write_json(tmp / CARD, card)
     atomic_write_text(tmp / "model_card.md", card_markdown(card))
     shutil.rmtree(dest, ignore_errors=True)
@@ -161,7 +161,7 @@ def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[st
         "checkpoint": checkpoint.name,
         # a fine-tuned run: where its weights started (their steps are not in steps_per_env;
         # their CPU time is in cpu_minutes)
-        "init_from": _source(cfg.get("init_from")),
+        "init_from": cfg.get("init_from"),
         "evaluations": evals,
         "headline": _headline(cfg["task"], evals),
         "notes": notes,

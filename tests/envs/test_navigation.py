@@ -7,7 +7,12 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import sonogym  # noqa: F401
-from sonogym.envs.navigation import NavigationEnv, navigation_expert, navigation_reward
+from sonogym.envs.navigation import (
+    NavigationEnv,
+    navigation_expert,
+    navigation_reward,
+    probe_tilt,
+)
 
 FAST = dict(patients=(0,), phantom_spacing=0.002)
 
@@ -314,6 +319,49 @@ def test_us_scan_adds_the_image_and_pose_where_the_probe_was_most_caudal():
 def test_memory_lag_must_be_a_positive_whole_number_of_steps(lag):
     with pytest.raises(ValueError, match="memory_lag"):
         NavigationEnv(1, obs_mode="us_memory", memory_lag=lag, **FAST)
+
+
+def test_probe_tilt_is_the_vertical_seen_across_and_along_the_image():
+    """(y_P . x_U, y_P . y_U): zero for a beam along +y_P; sin(theta) across the image for a
+    beam turned theta about the image's elevation axis, and along it for the other axis."""
+    x_u, y_u, z_u = torch.tensor([-1.0, 0, 0]), torch.tensor([0, 0, 1.0]), torch.tensor([0, 1.0, 0])
+    upright = torch.stack([x_u, y_u, z_u], -1)[None]
+    torch.testing.assert_close(probe_tilt(upright), torch.zeros(1, 2))
+    th = 0.3
+    c, s = math.cos(th), math.sin(th)
+    across = torch.stack([x_u * c + z_u * s, y_u, z_u * c - x_u * s], -1)[None]
+    along = torch.stack([x_u, y_u * c + z_u * s, z_u * c - y_u * s], -1)[None]
+    torch.testing.assert_close(probe_tilt(across), torch.tensor([[s, 0.0]]))
+    torch.testing.assert_close(probe_tilt(along), torch.tensor([[0.0, s]]))
+
+
+@pytest.mark.parametrize("mode", ["us_heading", "us_scan"])
+def test_observe_tilt_adds_the_reached_probes_tilt_from_the_skin_normal(mode):
+    """``observe_tilt``: the Dict gains ``tilt`` = ``probe_tilt`` of the reached pose, the rest
+    unchanged; with the beam along the skin's inward normal n, |tilt|^2 = 1 - n_y^2."""
+    plain, tilted = _env(4, obs_mode=mode), _env(4, obs_mode=mode, observe_tilt=True)
+    obs_p, _ = plain.reset(seed=3)
+    obs_t, _ = tilted.reset(seed=3)
+    assert set(obs_t) == set(obs_p) | {"tilt"}
+    assert tilted.observation_space.contains({k: v.numpy() for k, v in obs_t.items()})
+    for k in obs_p:
+        assert torch.equal(obs_t[k], obs_p[k]), k
+    env = tilted.unwrapped if hasattr(tilted, "unwrapped") else tilted
+    obs_t, *_ = tilted.step(torch.ones(4, 3))
+    rot = env.scene.probe_rot
+    torch.testing.assert_close(obs_t["tilt"], rot[:, 1, :2].float())
+    x, z, _, tilt = env.scene.measured_command()
+    n = env.scene.skin.normal(x, z, env.scene.patient_index)
+    assert float(tilt.abs().max()) < 0.05  # the arm holds the beam near the normal
+    torch.testing.assert_close(
+        obs_t["tilt"].pow(2).sum(-1), 1 - n[:, 1].float() ** 2, atol=0.02, rtol=0
+    )
+    assert float(obs_t["tilt"].abs().max()) > 0.01  # the back is not flat: something to see
+
+
+def test_observe_tilt_needs_a_dict_observation():
+    with pytest.raises(ValueError, match="observe_tilt.*us_scan"):
+        NavigationEnv(1, obs_mode="us", observe_tilt=True, **FAST)
 
 
 def test_measured_command_is_computed_once_per_pose_and_stays_fresh(monkeypatch):

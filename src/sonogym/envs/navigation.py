@@ -36,6 +36,12 @@ sacrum but not down from L1: from cranial starts it stops over L3's arch, which 
 lowest level visited in view however long ago, so a probe that went down to L5 or the sacrum
 and came back knows how far above it is. Like ``us_memory``, only what the pose tracking and
 the images already seen tell.
+``observe_tilt=True`` (not in the paper; with ``us_heading``, ``us_memory`` or ``us_scan``)
+adds ``tilt`` (2,) float32 = ``probe_tilt``: the patient's vertical +y_P seen in the image's
+lateral and elevation axes (the sines of the beam's tilt). Why: the beam follows the skin's
+smoothed inward normal, which at the goal leans 0-19 deg sideways on the phantoms and the real
+subject, so the arch sits up to ~15 mm off the image's centre line at the goal, by an amount
+an image alone cannot tell from the probe being off the goal (docs/envs.md).
 
 **Actions.** (dx, dy, dalpha) in {U}, unitless; scaled by ``action_scale`` (3 mm, 3 mm, 0.1 rad)
 and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.
@@ -97,6 +103,8 @@ ObsMode = Literal["us", "us_heading", "us_memory", "us_scan", "ct", "labels", "s
 OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 #: the modes that keep a memory of the scan (``_init_memory``, ``_observe_with_memory``)
 MEMORY_MODES: tuple[str, ...] = ("us_memory", "us_scan")
+#: the modes whose observation is a Dict (``observe_tilt`` adds its entry to them)
+DICT_MODES: tuple[str, ...] = ("us_heading", *MEMORY_MODES)
 
 
 @dataclass(frozen=True)
@@ -116,6 +124,8 @@ class NavigationConfig(SceneConfig):
     action_limit: tuple[float, float, float] = (0.006, 0.006, 0.2)  # m, m, rad per step
     w1: float = 0.045  # reward per mm of position progress (paper)
     memory_lag: int = 30  # control steps: how old us_memory's (us_scan's) remembered image is
+    #: add the reached probe's tilt from the vertical, ``tilt`` (2,), to a Dict observation
+    observe_tilt: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()  # check_number_fields: memory_lag is an integer
@@ -145,6 +155,16 @@ def goal_in_probe(state: torch.Tensor) -> torch.Tensor:
     return -(matrix_from_axis_angle(q).transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1)
 
 
+def probe_tilt(rot: torch.Tensor) -> torch.Tensor:
+    """(N, 2) the probe's tilt from the patient's vertical, from its orientation ``rot``
+    (N, 3, 3) in {P} (columns x_U, y_U, z_U): (y_P . x_U, y_P . y_U), the sines of the beam's
+    tilt across the image and along the elevation; (0, 0) when the beam points along +y_P
+    (into the back of a prone patient). What a tracked probe's orientation (or an IMU on it)
+    tells; with the depth of a bone in the image it says how far the beam has drifted
+    sideways by then."""
+    return rot[:, 1, :2].float()
+
+
 def navigation_expert(
     state: torch.Tensor,
     gain: float = 0.2,
@@ -169,6 +189,12 @@ class NavigationEnv(TaskEnv):
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         super().__init__(num_envs, SPEC, kwargs)
         cfg = self.cfg
+        if cfg.observe_tilt and cfg.obs_mode not in DICT_MODES:  # checked here: options are
+            # parsed one at a time, before obs_mode is known
+            raise ValueError(
+                f"observe_tilt adds an entry to a Dict observation; obs_mode {cfg.obs_mode!r} "
+                f"has none: use one of {DICT_MODES}, or observe_tilt=False"
+            )
         # navigation reads the volumes only through the slicer: patients load one at a time
         self.scene = ProbeScene(
             cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False
@@ -208,6 +234,9 @@ class NavigationEnv(TaskEnv):
             "labels": spaces.Box(0, 255, (1, *self.scene.image_shape), np.uint8),
             "state": spaces.Box(-np.inf, np.inf, (6,), np.float32),
         }[cfg.obs_mode]
+        if cfg.observe_tilt:
+            tilt = spaces.Box(-1.0, 1.0, (2,), np.float32)
+            obs_space = spaces.Dict({**obs_space.spaces, "tilt": tilt})
         self._set_spaces(obs_space, spaces.Box(-bound, bound, (3,), np.float32))
         self._state = torch.zeros(n, 6, device=self.device)
         self._prev_state = torch.zeros(n, 6, device=self.device)
@@ -261,14 +290,18 @@ class NavigationEnv(TaskEnv):
         mode = self.cfg.obs_mode
         if mode == "state":
             return self._state.clone() if env_ids is None else self._state[env_ids].clone()
+        sl = slice(None) if env_ids is None else env_ids
         if mode == "us_heading":
-            sl = slice(None) if env_ids is None else env_ids
             yaw = self.scene.measured_command(sl)[2]
             heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1).float()
-            return {"image": self.scene.observe("us", env_ids), "heading": heading}
-        if mode in MEMORY_MODES:
-            return self._observe_with_memory(env_ids)
-        return self.scene.observe(mode, env_ids)
+            obs = {"image": self.scene.observe("us", env_ids), "heading": heading}
+        elif mode in MEMORY_MODES:
+            obs = self._observe_with_memory(env_ids)
+        else:
+            return self.scene.observe(mode, env_ids)
+        if self.cfg.observe_tilt:
+            obs["tilt"] = probe_tilt(self.scene.probe_rot[sl])
+        return obs
 
     def _init_memory(self) -> None:
         # a ring of memory_lag + 1 slots per env: step t writes slot t % (lag + 1) and reads

@@ -39,7 +39,7 @@ the images already seen tell.
 ``observe_tilt=True`` (not in the paper; with ``us_heading``, ``us_memory`` or ``us_scan``)
 adds ``tilt`` (2,) float32 = ``probe_tilt``: the patient's vertical +y_P seen in the image's
 lateral and elevation axes (the sines of the beam's tilt). Why: the beam follows the skin's
-smoothed inward normal, which at the goal leans 0-19 deg sideways on the phantoms and the real
+smoothed inward normal, which at the goal leans -12.5..+18.8 deg sideways on phantoms and the real
 subject, so the arch sits up to ~15 mm off the image's centre line at the goal, by an amount
 an image alone cannot tell from the probe being off the goal (docs/envs.md).
 

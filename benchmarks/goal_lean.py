@@ -1,0 +1,78 @@
+"""How far the beam leans at the navigation goal, and whether a policy's final offset across
+the spine follows it. The figures in docs/envs.md (``observe_tilt``) come from
+
+    python benchmarks/goal_lean.py --patients 5-9 100-104 200-204 \
+        tests/data/totalsegmentator_example --episodes DIR/episodes/*.npz
+
+For each patient: the lean of the beam toward +x_P at {G} (the skin's smoothed inward normal
+above the L4 body centroid, ``SkinSurface.surface_pose``), in degrees. With ``--episodes``
+(logs ``sonogym eval`` wrote; episode k ran on patient (k % num_envs) % P of its test env), also
+each patient's median final x (mm, across the spine, from {G}) of the ``policy`` episodes that
+ended within 20 mm of {G} along the spine (a level off is another error), and over the patients
+found in the logs the correlation of that median with sin(lean) and the least-squares slope.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import torch
+
+from sonogym.envs.options import parse_patients
+from sonogym.envs.patients import TARGET, resolve_patients
+from sonogym.evaluation.episodes import load_log
+
+SPACING = 0.001  # m, the training phantoms' voxel size
+
+
+def goal_lean(patient) -> float:
+    """sin of the beam's lean toward +x_P at the transverse view above the target's centroid."""
+    c = patient.landmarks.vertebra(TARGET).centre
+    t = lambda v: torch.tensor([float(v)], dtype=torch.float64)  # noqa: E731
+    _, rot = patient.skin.surface_pose(t(c[0]), t(c[2]), t(math.pi))
+    return float(rot[0, 0, 2])
+
+
+def final_x_by_patient(paths: list[str]) -> dict[str, list[float]]:
+    """{patient spec: final x (mm) of its in-level policy episodes} over the logs."""
+    out: dict[str, list[float]] = {}
+    for path in paths:
+        log = load_log(path)
+        specs = [str(p) for p in log.meta["test_env"]["patients"]]
+        end = log.tracks["policy"][:, -1]  # (trials, [x, z, yaw])
+        k = np.arange(len(end))
+        pid = (k % log.meta["num_envs"]) % len(specs)
+        for i, spec in enumerate(specs):
+            keep = (pid == i) & (np.abs(end[:, 1]) < 20.0)
+            out.setdefault(spec, []).extend(end[keep, 0].tolist())
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--patients", nargs="+", required=True, help="seeds, A-B ranges, folders")
+    ap.add_argument("--episodes", nargs="*", default=[], help="episode logs of sonogym eval")
+    args = ap.parse_args()
+    specs = parse_patients(args.patients)
+    ends = final_x_by_patient(args.episodes)
+    pairs = []
+    print("| patient | lean toward +x_P [deg] | median final x [mm] | episodes |")
+    print("|---|---|---|---|")
+    for spec, patient in zip(specs, resolve_patients(specs, SPACING), strict=True):
+        s = goal_lean(patient)
+        xs = ends.get(str(spec), [])
+        med = float(np.median(xs)) if xs else float("nan")
+        if xs:
+            pairs.append((s, med))
+        print(f"| {spec} | {math.degrees(math.asin(s)):+.1f} | {med:+.1f} | {len(xs)} |")
+    if len(pairs) >= 3:
+        a = np.array(pairs)
+        r = np.corrcoef(a[:, 0], a[:, 1])[0, 1]
+        slope = np.polyfit(a[:, 0], a[:, 1], 1)[0]
+        print(f"\n{len(a)} patients: r = {r:+.2f}, median final x = {slope:+.1f} mm x sin(lean)")
+
+
+if __name__ == "__main__":
+    main()

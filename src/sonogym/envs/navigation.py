@@ -39,9 +39,11 @@ the images already seen tell.
 ``observe_tilt=True`` (not in the paper; with ``us_heading``, ``us_memory`` or ``us_scan``)
 adds ``tilt`` (2,) float32 = ``probe_tilt``: the patient's vertical +y_P seen in the image's
 lateral and elevation axes (the sines of the beam's tilt). Why: the beam follows the skin's
-smoothed inward normal, which at the goal leans -12.5..+18.8 deg sideways on phantoms and the real
-subject, so the arch sits up to ~15 mm off the image's centre line at the goal, by an amount
-an image alone cannot tell from the probe being off the goal (docs/envs.md).
+smoothed inward normal, which at the goal leans -12.5..+18.8 deg sideways on phantoms and the
+real subject, so the arch sits up to ~15 mm off the image's centre line at the goal, by an
+amount an image alone cannot tell from the probe being off the goal. Trained with it, PPO ends
+closer across the spine on new phantoms but fails on the real subject (docs/envs.md): off by
+default.
 
 **Actions.** (dx, dy, dalpha) in {U}, unitless; scaled by ``action_scale`` (3 mm, 3 mm, 0.1 rad)
 and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.

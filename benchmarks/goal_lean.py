@@ -5,7 +5,9 @@ the spine follows it. The figures in docs/envs.md (``observe_tilt``) come from
         tests/data/totalsegmentator_example --episodes DIR/episodes/*.npz
 
 For each patient: the lean of the beam toward +x_P at {G} (the skin's smoothed inward normal
-above the L4 body centroid, ``SkinSurface.surface_pose``), in degrees. With ``--episodes``
+above the L4 body centroid, ``SkinSurface.surface_pose``), in degrees, and where on the skin
+(x, z from {G}, mm; 0.5 mm grid over +-30 mm) the transverse view's beam passes nearest the
+centroid instead: how far a goal "centred on the target" would lie from {G}. With ``--episodes``
 (logs ``sonogym eval`` wrote; episode k ran on patient (k % num_envs) % P of its test env), also
 each patient's median final x (mm, across the spine, from {G}) of the ``policy`` episodes that
 ended within 20 mm of {G} along the spine (a level off is another error), and over the patients
@@ -35,6 +37,19 @@ def goal_lean(patient) -> float:
     return float(rot[0, 0, 2])
 
 
+def centred_goal(patient) -> tuple[float, float]:
+    """(x, z) mm from {G} of the transverse view whose beam passes nearest the target's
+    centroid (grid search, 0.5 mm steps within +-30 mm)."""
+    c = patient.landmarks.vertebra(TARGET).centre
+    g = torch.arange(-30.0, 30.01, 0.5, dtype=torch.float64) * 1e-3
+    gx, gz = (a.reshape(-1) for a in torch.meshgrid(g, g, indexing="ij"))
+    pos, rot = patient.skin.surface_pose(gx + c[0], gz + c[2], torch.full_like(gx, math.pi))
+    beam, v = rot[..., 2], torch.as_tensor(c) - pos
+    miss = (v - (v * beam).sum(-1, keepdim=True) * beam).norm(dim=-1)
+    j = int(miss.argmin())
+    return float(gx[j]) * 1e3, float(gz[j]) * 1e3
+
+
 def final_x_by_patient(paths: list[str]) -> dict[str, list[float]]:
     """{patient spec: final x (mm) of its in-level policy episodes} over the logs."""
     out: dict[str, list[float]] = {}
@@ -58,15 +73,19 @@ def main() -> None:
     specs = parse_patients(args.patients)
     ends = final_x_by_patient(args.episodes)
     pairs = []
-    print("| patient | lean toward +x_P [deg] | median final x [mm] | episodes |")
-    print("|---|---|---|---|")
+    print(
+        "| patient | lean to +x_P [deg] | centred goal x, z [mm] | median final x [mm] | episodes |"
+    )
+    print("|---|---|---|---|---|")
     for spec, patient in zip(specs, resolve_patients(specs, SPACING), strict=True):
         s = goal_lean(patient)
         xs = ends.get(str(spec), [])
         med = float(np.median(xs)) if xs else float("nan")
         if xs:
             pairs.append((s, med))
-        print(f"| {spec} | {math.degrees(math.asin(s)):+.1f} | {med:+.1f} | {len(xs)} |")
+        cx, cz = centred_goal(patient)
+        lean = math.degrees(math.asin(s))
+        print(f"| {spec} | {lean:+.1f} | {cx:+.1f}, {cz:+.1f} | {med:+.1f} | {len(xs)} |")
     if len(pairs) >= 3:
         a = np.array(pairs)
         r = np.corrcoef(a[:, 0], a[:, 1])[0, 1]

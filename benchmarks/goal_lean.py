@@ -29,25 +29,19 @@ from sonogym.evaluation.episodes import load_log
 SPACING = 0.001  # m, the training phantoms' voxel size
 
 
-def goal_lean(patient) -> float:
-    """sin of the beam's lean toward +x_P at the transverse view above the target's centroid."""
+def goal_views(patient) -> tuple[float, float, float]:
+    """(sin of the beam's lean toward +x_P at {G}, and (x, z) mm from {G} of the transverse
+    view whose beam passes nearest the target's centroid), from one grid of transverse views
+    around {G} (0.5 mm steps within +-30 mm; {G} is its centre)."""
     c = patient.landmarks.vertebra(TARGET).centre
-    t = lambda v: torch.tensor([float(v)], dtype=torch.float64)  # noqa: E731
-    _, rot = patient.skin.surface_pose(t(c[0]), t(c[2]), t(math.pi))
-    return float(rot[0, 0, 2])
-
-
-def centred_goal(patient) -> tuple[float, float]:
-    """(x, z) mm from {G} of the transverse view whose beam passes nearest the target's
-    centroid (grid search, 0.5 mm steps within +-30 mm)."""
-    c = patient.landmarks.vertebra(TARGET).centre
-    g = torch.arange(-30.0, 30.01, 0.5, dtype=torch.float64) * 1e-3
+    g = torch.arange(-60, 61, dtype=torch.float64) * 0.5e-3
     gx, gz = (a.reshape(-1) for a in torch.meshgrid(g, g, indexing="ij"))
     pos, rot = patient.skin.surface_pose(gx + c[0], gz + c[2], torch.full_like(gx, math.pi))
     beam, v = rot[..., 2], torch.as_tensor(c) - pos
     miss = (v - (v * beam).sum(-1, keepdim=True) * beam).norm(dim=-1)
     j = int(miss.argmin())
-    return float(gx[j]) * 1e3, float(gz[j]) * 1e3
+    at_goal = len(gx) // 2  # the grid's centre: offset (0, 0)
+    return float(beam[at_goal, 0]), float(gx[j]) * 1e3, float(gz[j]) * 1e3
 
 
 def final_x_by_patient(paths: list[str]) -> dict[str, list[float]]:
@@ -78,12 +72,11 @@ def main() -> None:
     )
     print("|---|---|---|---|---|")
     for spec, patient in zip(specs, resolve_patients(specs, SPACING), strict=True):
-        s = goal_lean(patient)
+        s, cx, cz = goal_views(patient)
         xs = ends.get(str(spec), [])
         med = float(np.median(xs)) if xs else float("nan")
         if xs:
             pairs.append((s, med))
-        cx, cz = centred_goal(patient)
         lean = math.degrees(math.asin(s))
         print(f"| {spec} | {lean:+.1f} | {cx:+.1f}, {cz:+.1f} | {med:+.1f} | {len(xs)} |")
     if len(pairs) >= 3:

@@ -169,10 +169,8 @@ def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[st
     }
 
 
-def _source(init: dict | None) -> dict | None:
+def _source(init: dict) -> dict:
     """The run a fine-tuned run started from, by names only (no local paths in a card)."""
-    if not init:
-        return None
     return {
         "run": Path(init["run"]).name,
         "checkpoint": Path(init["checkpoint"]).name,

@@ -298,7 +298,8 @@ def train(
         options.check()
         _check_positive(("--checkpoint-every", checkpoint_every))
         pats, simulator = options.patient_specs(), options.simulator
-        env_kwargs = {**parse_env_options(task, env_option), **options.scene_kwargs()}
+        scene = options.scene_kwargs()
+        env_kwargs = {**parse_env_options(task, env_option, scene), **scene}
         if protocol is not None:
             env_kwargs = protocol_env_kwargs(protocol, env_kwargs, pats, simulator)
             pats, simulator = None, None
@@ -489,14 +490,16 @@ _FLAGGED_ENV_OPTIONS = {
 }
 
 
-def parse_env_options(task: str, items: list[str] | None) -> dict[str, Any]:
+def parse_env_options(
+    task: str, items: list[str] | None, flag_values: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """``--env-option KEY=VALUE`` items -> env keyword arguments
     (``sonogym.envs.options.parse_env_options``; the options with a flag of their own are
-    refused, naming the flag)."""
+    refused, naming the flag; ``flag_values``: the env options those flags gave)."""
     from sonogym.envs import options
 
     with _bad_parameter():
-        return options.parse_env_options(task, items, _FLAGGED_ENV_OPTIONS)
+        return options.parse_env_options(task, items, _FLAGGED_ENV_OPTIONS, flag_values)
 
 
 def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:

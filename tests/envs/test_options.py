@@ -35,3 +35,19 @@ def test_env_options_name_what_is_wrong():
         parse_env_options("navigation", ["w9=1"])
     with pytest.raises(ValueError, match="--env-option w1 is given twice"):
         parse_env_options("navigation", ["w1=1", "w1=2"])
+
+
+def test_env_options_are_checked_together_with_the_flags_values():
+    """A check across options sees the run's values: ``observe_tilt`` needs a Dict
+    observation, which ``--obs-mode`` (``flag_values``) or another option may give; refused
+    without one, naming the option as typed."""
+    tilt = ["observe_tilt=true"]
+    with pytest.raises(ValueError, match=r"--env-option observe_tilt=true: .*obs_mode 'us'"):
+        parse_env_options("navigation", tilt)
+    assert parse_env_options("navigation", tilt, flag_values={"obs_mode": "us_scan"}) == {
+        "observe_tilt": True
+    }
+    both = parse_env_options("navigation", ["obs_mode=us_memory", *tilt])
+    assert both == {"obs_mode": "us_memory", "observe_tilt": True}
+    with pytest.raises(ValueError, match=r"--env-option w1=nan: "):  # not blamed on the tilt
+        parse_env_options("navigation", ["obs_mode=us_memory", *tilt, "w1=nan"])

@@ -133,6 +133,11 @@ class NavigationConfig(SceneConfig):
         super().__post_init__()  # check_number_fields: memory_lag is an integer
         if self.memory_lag < 1:
             raise ValueError(f"memory_lag must be at least 1 step, got {self.memory_lag}")
+        if self.observe_tilt and self.obs_mode not in DICT_MODES:
+            raise ValueError(
+                f"observe_tilt adds an entry to a Dict observation; obs_mode {self.obs_mode!r} "
+                f"has none: use one of {DICT_MODES}, or observe_tilt=False"
+            )
 
 
 def navigation_reward(
@@ -191,12 +196,6 @@ class NavigationEnv(TaskEnv):
     def __init__(self, num_envs: int = 1, **kwargs) -> None:
         super().__init__(num_envs, SPEC, kwargs)
         cfg = self.cfg
-        if cfg.observe_tilt and cfg.obs_mode not in DICT_MODES:  # checked here: options are
-            # parsed one at a time, before obs_mode is known
-            raise ValueError(
-                f"observe_tilt adds an entry to a Dict observation; obs_mode {cfg.obs_mode!r} "
-                f"has none: use one of {DICT_MODES}, or observe_tilt=False"
-            )
         # navigation reads the volumes only through the slicer: patients load one at a time
         self.scene = ProbeScene(
             cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False

@@ -54,14 +54,19 @@ def parse_learned_nets(text: str) -> tuple[int | str, ...]:
 
 
 def parse_env_options(
-    task: str, items: list[str] | None, own_flags: dict[str, str] | None = None
+    task: str,
+    items: list[str] | None,
+    own_flags: dict[str, str] | None = None,
+    flag_values: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """``KEY=VALUE`` items -> env keyword arguments; values read as int, float,
     true/false/none or text (``parse_value``), comma-separated for an option whose default is
     a tuple. Names an unknown option, a malformed item, a repeated key, a non-number for a
     numeric option, an option that has its own flag (``own_flags``: option -> the flag to use)
     and whatever the task's config refuses (NaN, inf or 1e309 for a number, 2.5 for an integer
-    option: 2.0 is taken as 2)."""
+    option: 2.0 is taken as 2). ``flag_values``: the env options other flags give (e.g.
+    ``{"obs_mode": "us_scan"}`` from ``--obs-mode``), so that the config's checks across
+    options see the run's values, not the defaults."""
     from sonogym.envs.registry import get_task
 
     own_flags = own_flags or {}
@@ -92,13 +97,29 @@ def parse_env_options(
         number = (int, float)
         if isinstance(default, number) and not isinstance(out[key], number):
             raise ValueError(f"--env-option {key}={value}: expected a number (default {default!r})")
-    for key, value in out.items():  # the config's own checks (finite numbers, integers, ranges)
-        try:
-            out[key] = getattr(config_cls(**{key: value}), key)  # 2.0 for an integer: 2
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"--env-option {key}={given[key]}: {e}") from None
-    try:
-        config_cls(**out)
+    base = dict(flag_values or {})
+    try:  # the config's own checks (finite numbers, integers, ranges, options that go together)
+        config = config_cls(**{**base, **out})
     except (TypeError, ValueError) as e:
-        raise ValueError(f"--env-option: {e}") from None
-    return out
+        raise ValueError(_refusal(config_cls, base, out, given, e)) from None
+    return {key: getattr(config, key) for key in out}  # 2.0 for an integer option: 2
+
+
+def _refusal(config_cls, base: dict, out: dict, given: dict, error: Exception) -> str:
+    """Why the config refuses ``out``: the first option it refuses with the others that it
+    accepts alone (named with its text as typed), else the config's own message."""
+
+    def refuses(kwargs: dict) -> Exception | None:
+        try:
+            config_cls(**kwargs)
+        except (TypeError, ValueError) as e:
+            return e
+        return None
+
+    bad = [k for k in out if refuses({**base, k: out[k]})]
+    good = {k: v for k, v in out.items() if k not in bad}
+    for key in bad:  # e.g. observe_tilt=true is fine with an obs_mode=us_scan given beside it
+        e = refuses({**base, **good, key: out[key]})
+        if e is not None:
+            return f"--env-option {key}={given[key]}: {e}"
+    return f"--env-option: {error}"

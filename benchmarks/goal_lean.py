@@ -24,7 +24,7 @@ import torch
 
 from sonogym.envs.options import parse_patients
 from sonogym.envs.patients import TARGET, resolve_patients
-from sonogym.evaluation.episodes import load_log
+from sonogym.evaluation.episodes import episode_patient, load_log
 
 SPACING = 0.001  # m, the training phantoms' voxel size
 
@@ -49,13 +49,10 @@ def final_x_by_patient(paths: list[str]) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {}
     for path in paths:
         log = load_log(path)
-        specs = [str(p) for p in log.meta["test_env"]["patients"]]
         end = log.tracks["policy"][:, -1]  # (trials, [x, z, yaw])
-        k = np.arange(len(end))
-        pid = (k % log.meta["num_envs"]) % len(specs)
-        for i, spec in enumerate(specs):
-            keep = (pid == i) & (np.abs(end[:, 1]) < 20.0)
-            out.setdefault(spec, []).extend(end[keep, 0].tolist())
+        for k, (x, z) in enumerate(end[:, :2]):
+            if abs(z) < 20.0:
+                out.setdefault(str(episode_patient(log, k)), []).append(float(x))
     return out
 
 

@@ -14,7 +14,7 @@ import pytest
 
 from sonogym.envs.registry import get_task
 from sonogym.evaluation.curves import curve_over_seeds, discover_runs, plot_curves
-from sonogym.evaluation.episodes import load_log, log_path, save_log
+from sonogym.evaluation.episodes import EpisodeLog, episode_patient, load_log, log_path, save_log
 from sonogym.evaluation.report import build_report, table1_columns, task_metrics
 from sonogym.imitation.policies.registry import policy_for_algo
 from sonogym.imitation.processor import PolicyFeatures
@@ -248,3 +248,21 @@ def test_policies_trained_on_the_privileged_state_are_named_so():
     assert _method("policy", meta) == "PPO (state)"
     assert _method("policy", {**meta, "train_env": {}}) == "PPO"
     assert _method("unfiltered", {**meta, "algo": "ppo-sf"}) == "PPO + SF (state), filter off"
+
+
+def test_the_episode_patient_follows_the_evaluation_envs():
+    def log(patients, num_envs):
+        meta = {"task": "navigation", "test_env": {"patients": patients}}
+        if num_envs is not None:
+            meta["num_envs"] = num_envs
+        return EpisodeLog(Path("x.npz"), meta, {}, {})
+
+    # episode k ran in env k % num_envs, which holds patient (env % P)
+    assert [episode_patient(log([3, 7], 2), k) for k in range(4)] == [3, 7, 3, 7]
+    assert [episode_patient(log([3, 7, 9], 2), k) for k in range(4)] == [3, 7, 3, 7]
+    assert [episode_patient(log([3, 7], 4), k) for k in range(4)] == [3, 7, 3, 7]
+    assert [episode_patient(log([3, 7, 9], 4), k) for k in range(5)] == [3, 7, 9, 3, 3]
+    assert episode_patient(log(["/data/s1"], None), 5) == "/data/s1"
+    assert episode_patient(EpisodeLog(Path("x"), {"task": "surgery"}, {}, {}), 2) == 0
+    with pytest.raises(ValueError, match="evaluate the run again"):
+        episode_patient(log([3, 7], None), 1)

@@ -240,29 +240,6 @@ def test_run_replay_places_the_probe_and_drill_along_the_saved_track(tmp_path):
         run_view(ViewRequest(run=run, protocol="odt-sim"), save=tmp_path / "y.rrd")
 
 
-def test_the_episode_patient_follows_the_evaluation_envs():
-    from pathlib import Path
-
-    from sonogym.evaluation.episodes import EpisodeLog
-    from sonogym.viewer.replay import episode_patient
-
-    def log(patients, num_envs):
-        meta = {"task": "navigation", "test_env": {"patients": patients}}
-        if num_envs is not None:
-            meta["num_envs"] = num_envs
-        return EpisodeLog(Path("x.npz"), meta, {}, {})
-
-    # episode k ran in env k % num_envs, which holds patient (env % P)
-    assert [episode_patient(log([3, 7], 2), k) for k in range(4)] == [3, 7, 3, 7]
-    assert [episode_patient(log([3, 7, 9], 2), k) for k in range(4)] == [3, 7, 3, 7]
-    assert [episode_patient(log([3, 7], 4), k) for k in range(4)] == [3, 7, 3, 7]
-    assert [episode_patient(log([3, 7, 9], 4), k) for k in range(5)] == [3, 7, 9, 3, 3]
-    assert episode_patient(log(["/data/s1"], None), 5) == "/data/s1"
-    assert episode_patient(EpisodeLog(Path("x"), {"task": "surgery"}, {}, {}), 2) == 0
-    with pytest.raises(ValueError, match="evaluate the run again"):
-        episode_patient(log([3, 7], None), 1)
-
-
 def test_dataset_replay_shows_the_saved_images_state_and_actions(tmp_path):
     from sonogym.imitation.record import info_features
     from sonogym.imitation.writer import DatasetWriter

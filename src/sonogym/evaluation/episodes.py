@@ -192,3 +192,21 @@ def _controller_label(c: str, meta: dict) -> str:
     if c == "expert":
         return get_task(meta["task"]).expert_label
     return c
+
+
+def episode_patient(log: EpisodeLog, episode: int) -> int | str:
+    """The test patient episode ``episode`` ran on: env k % num_envs of the evaluation, which
+    holds patient (k % num_envs) % P."""
+    meta = log.meta
+    default = get_task(meta["task"]).config_cls().patients
+    patients = list(meta.get("test_env", {}).get("patients", default))
+    if len(patients) == 1:
+        return patients[0]
+    n = meta.get("num_envs")
+    if n is None:
+        raise ValueError(
+            f"{log.path}: its episodes ran on {len(patients)} patients and the log does not say "
+            "how many envs ran them (it predates that field): evaluate the run again "
+            "(sonogym eval) to place its episodes"
+        )
+    return patients[(episode % int(n)) % len(patients)]

@@ -27,7 +27,7 @@ import torch
 from sonogym.envs.base import make_config
 from sonogym.envs.patients import resolve_patients
 from sonogym.envs.registry import get_task, make_vec
-from sonogym.evaluation.episodes import EpisodeLog, load_log, log_path
+from sonogym.evaluation.episodes import EpisodeLog, episode_patient, load_log, log_path
 from sonogym.geometry import matrix_from_quat
 from sonogym.runs import lists_to_tuples
 from sonogym.viewer import draw
@@ -50,24 +50,6 @@ def load_run_log(run: str | Path, protocol: str) -> EpisodeLog:
             f"`sonogym eval --run {run}` writes them"
         )
     return load_log(path)
-
-
-def episode_patient(log: EpisodeLog, episode: int) -> int | str:
-    """The test patient episode ``episode`` ran on: env k % num_envs of the evaluation, which
-    holds patient (k % num_envs) % P."""
-    meta = log.meta
-    default = get_task(meta["task"]).config_cls().patients
-    patients = list(meta.get("test_env", {}).get("patients", default))
-    if len(patients) == 1:
-        return patients[0]
-    n = meta.get("num_envs")
-    if n is None:
-        raise ValueError(
-            f"{log.path}: its episodes ran on {len(patients)} patients and the log does not say "
-            "how many envs ran them (it predates that field): evaluate the run again "
-            "(sonogym eval) to view its episodes"
-        )
-    return patients[(episode % int(n)) % len(patients)]
 
 
 def view_run_episode(

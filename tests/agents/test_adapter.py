@@ -121,3 +121,34 @@ def test_training_run_keeps_the_stagger_after_its_cost_estimate(tmp_path, monkey
     assert any("estimated" in s for s in lines)  # the estimate ran
     # staggered: the 8 first episodes end over several steps, not all 8 at step 16
     assert len(first_ends) > 2 and max(first_ends) < 8
+
+
+def test_privileged_state_is_the_current_state_and_the_transitions_final_one():
+    """``state()`` is ``info["state"]`` of the observations the policy acts on (after an
+    autoreset: the new episode's first state); ``transition_states`` the state each
+    transition reached (an ended episode's final state), as ``final_observations``."""
+    env = NavigationEnv(2, episode_length=2, **FAST)
+    adapter = SkrlEnvAdapter(env, obs_downsample=2, seed=0, privileged_state=True)
+    assert adapter.state_space.shape == (6,)
+    _, info = adapter.reset()
+    assert torch.equal(adapter.state(), info["state"])
+    a = torch.ones(2, 3)
+    before = adapter.state()
+    _, _, _, trunc, info = adapter.step(a)
+    assert not trunc.any()
+    assert torch.equal(adapter.state(), info["state"]) and not torch.equal(adapter.state(), before)
+    assert torch.equal(adapter.transition_states(info), info["state"])
+    _, _, _, trunc, info = adapter.step(a)
+    assert trunc.all()
+    assert torch.equal(adapter.transition_states(info), info["state"])  # the final states
+    assert torch.equal(adapter.state(), env.current_info()["state"])  # the new episodes'
+    assert not torch.equal(adapter.state(), info["state"])
+    plain = SkrlEnvAdapter(NavigationEnv(2, **FAST), obs_downsample=2, seed=0)
+    plain.reset()
+    assert plain.state_space is None and plain.state() is None
+    assert plain.transition_states(info) is None
+
+
+def test_privileged_state_needs_the_envs_state():
+    with pytest.raises(ValueError, match=r"info\['state'\]"):
+        SkrlEnvAdapter._privileged({"command": torch.zeros(2, 3)})

@@ -115,3 +115,33 @@ def test_lean_net_is_small_convs_a_narrow_trunk_and_relu(task):
         2,
         n_act,
     )
+
+
+def test_privileged_critic_adds_a_state_value_the_policy_never_reads():
+    """With ``state_size`` the value is the image value plus an MLP of the privileged state,
+    whose output layer starts at zero; the policy's action ignores the state."""
+    layout, n_act = LAYOUTS["surgery"]
+    torch.manual_seed(0)
+    plain = SharedActorCritic("surgery", layout, _box(n_act))
+    torch.manual_seed(0)
+    priv = SharedActorCritic("surgery", layout, _box(n_act), state_size=6)
+    shared = {k: v for k, v in priv.state_dict().items() if not k.startswith("privileged_value.")}
+    assert shared.keys() == plain.state_dict().keys()
+    plain.load_state_dict(shared)
+    obs, states = torch.rand(4, layout.size), torch.rand(4, 6)
+    v_plain, _ = plain.act({"observations": obs}, role="value")
+    v_priv, _ = priv.act({"observations": obs, "states": states}, role="value")
+    assert torch.equal(v_plain, v_priv)  # the state branch starts at zero output
+    with torch.no_grad():
+        priv.privileged_value[-1].bias.fill_(0.5)
+        priv.privileged_value[-1].weight.normal_()
+    v1, _ = priv.act({"observations": obs, "states": states}, role="value")
+    v2, _ = priv.act({"observations": obs, "states": states.flip(0)}, role="value")
+    assert not torch.allclose(v1, v_plain) and not torch.allclose(v1, v2)
+    img = priv.value_head(priv.encoder(obs))
+    assert torch.allclose(v1 - img, priv.privileged_value(states))
+    a1 = priv.act({"observations": obs, "states": states}, role="policy")[1]["mean_actions"]
+    a2 = priv.act({"observations": obs, "states": states.flip(0)}, role="policy")[1]
+    assert torch.equal(a1, a2["mean_actions"])
+    with pytest.raises(ValueError, match="privileged"):
+        priv.act({"observations": obs}, role="value")

@@ -368,3 +368,44 @@ def test_init_from_a_shipped_policy(tmp_path, monkeypatch):
         )
     with pytest.raises(FileNotFoundError, match="nor a shipped policy's folder or name"):
         warm_start_source(Path("no-such-policy"), same)
+
+
+def test_privileged_critic_trains_on_the_state_and_the_policy_acts_without_it(tmp_path):
+    """``privileged_critic``: the critic's state branch learns (from its zero start) on the
+    env's standardised ``info["state"]``; the saved policy loads and acts from observations
+    alone; a run without it warm-starts one with it (the branch starts at zero), and back."""
+    from sonogym.agents.train import load_train_config
+
+    plain = tmp_path / "plain"
+    _tiny("navigation", "ppo", plain, steps=32)
+    run = tmp_path / "priv"
+    settings = {"privileged_critic": True}
+    init = plain / "checkpoints" / "agent_32.pt"
+    lines = []  # the run's announcement (its cost estimate runs the critic too)
+    _tiny("navigation", "ppo", run, steps=64, settings=settings, init_from=init, log=lines.append)
+    assert any(line.startswith("estimated") for line in lines)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["privileged_state_size"] == 6
+    assert load_train_config(run).rl.learning.privileged_critic is True
+    start = torch.load(run / "checkpoints" / "agent_0.pt", weights_only=True)
+    end = torch.load(run / "checkpoints" / "agent_64.pt", weights_only=True)
+    source = torch.load(init, weights_only=True)["policy"]
+    assert all(torch.equal(start["policy"][k], v) for k, v in source.items())
+    out_w = "privileged_value.1.weight"
+    assert not start["policy"][out_w].any() and end["policy"][out_w].abs().sum() > 0
+    # the states were standardised with statistics of the rollouts (6 pose components)
+    scaler = end["state_preprocessor"]
+    assert scaler["running_mean"].shape == (6,) and float(scaler["current_count"]) > 64
+    policy, _ = load_policy(run)
+    obs = torch.rand(3, policy.num_observations)
+    mean = policy.act({"observations": obs}, role="policy")[1]["mean_actions"]
+    assert mean.shape == (3, 3) and torch.isfinite(mean).all()
+    from sonogym.evaluation.pretrained import export_pretrained, weights
+
+    folder = export_pretrained(run, "priv", root=tmp_path / "shipped")  # ships like any policy
+    shipped, _ = load_policy(folder, weights("priv", tmp_path / "shipped"))
+    assert torch.equal(shipped.act({"observations": obs}, role="policy")[1]["mean_actions"], mean)
+    back = tmp_path / "back"  # fine-tuning without the privileged critic drops its branch
+    _tiny("navigation", "ppo", back, steps=32, init_from=run / "checkpoints" / "agent_64.pt")
+    assert json.loads((back / "config.json").read_text())["privileged_state_size"] == 0
+    assert not any("privileged" in k for k in load_policy(back)[0].state_dict())

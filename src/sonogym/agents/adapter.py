@@ -25,6 +25,11 @@ latest observations (as skrl's Isaac Lab wrapper does). The true final observati
 episode is ``info["final_obs"]``; ``final_observations(info, next_obs)`` returns the flat
 observations with those substituted, which time-limit bootstrapping needs (the value of the
 state the episode was truncated in, not of the next episode's first state).
+
+Privileged critic (``privileged_state=True``): the adapter also serves the task's privileged
+state ``info["state"]`` as skrl's *states* (``state_space``, ``state()``,
+``transition_states(info)``), which only the value network reads (asymmetric actor-critic).
+The policy never sees it, so a trained policy acts from the observations alone.
 """
 
 from __future__ import annotations
@@ -148,6 +153,7 @@ class SkrlEnvAdapter:
             (``standardizer``), updated by ``step`` while ``update_stats`` is true.
         stagger_episodes: after the first reset, shorten each env's first episode to a random
             length (``TorchVectorEnv.stagger_episodes``) so that envs end at different steps.
+        privileged_state: serve ``info["state"]`` as skrl's states (for the critic only).
     """
 
     def __init__(
@@ -158,6 +164,7 @@ class SkrlEnvAdapter:
         seed: int | None = None,
         standardize_vectors: bool = False,
         stagger_episodes: bool = False,
+        privileged_state: bool = False,
     ) -> None:
         if int(obs_downsample) != obs_downsample or obs_downsample < 1:
             raise ValueError(f"obs_downsample must be an integer >= 1, got {obs_downsample}")
@@ -174,6 +181,8 @@ class SkrlEnvAdapter:
         self._observations: torch.Tensor | None = None
         self._info: dict[str, Any] = {}
         self.stagger_episodes = bool(stagger_episodes)
+        self.privileged_state = bool(privileged_state)
+        self._state: torch.Tensor | None = None  # info["state"] of the current observations
         self.standardizer: RunningStandardizer | None = None
         self.update_stats = False
         if standardize_vectors:
@@ -209,8 +218,13 @@ class SkrlEnvAdapter:
         return gym.spaces.Box(-np.inf, np.inf, (self.layout.size,), np.float32)
 
     @property
-    def state_space(self) -> None:
-        return None
+    def state_space(self) -> gym.spaces.Box | None:
+        """Box of the privileged state of one env (``privileged_state``), else None. Its size
+        is read from the first reset's info (the reset the run starts from anyway)."""
+        if not self.privileged_state:
+            return None
+        self.reset()
+        return gym.spaces.Box(-np.inf, np.inf, tuple(self._state.shape[1:]), np.float32)
 
     @property
     def action_space(self) -> gym.spaces.Box:
@@ -229,6 +243,8 @@ class SkrlEnvAdapter:
         if self.stagger_episodes:
             self._env.stagger_episodes()
         self._observations = self.flatten(obs, update=update_stats)
+        if self.privileged_state:
+            self._state = self._privileged(self._info)
 
     def step(
         self, actions: torch.Tensor
@@ -238,6 +254,12 @@ class SkrlEnvAdapter:
             obs, reward, terminated, truncated, info = self._env.step(actions)
         self._observations = self.flatten(obs, update=self.update_stats)
         self._info = info
+        if self.privileged_state:  # the new episodes' first states where an episode ended
+            state = self._privileged(info)
+            if "_final_obs" in info:
+                mask = info["_final_obs"].to(state.device).view(-1, 1)
+                state = torch.where(mask, self._privileged(self._env.current_info()), state)
+            self._state = state
         return (
             self._observations,
             reward.to(torch.float32).view(-1, 1),
@@ -246,8 +268,24 @@ class SkrlEnvAdapter:
             info,
         )
 
-    def state(self) -> None:
-        return None
+    def state(self) -> torch.Tensor | None:
+        """The privileged state (N, S) of the current observations, or None."""
+        return self._state
+
+    def transition_states(self, info: dict[str, Any]) -> torch.Tensor | None:
+        """The privileged state each transition of ``step`` reached (for an ended episode, its
+        final state, as ``final_observations`` gives its final observation), or None."""
+        return self._privileged(info) if self.privileged_state else None
+
+    @staticmethod
+    def _privileged(info: dict[str, Any]) -> torch.Tensor:
+        if "state" not in info:
+            raise ValueError(
+                "privileged_critic needs the env's info['state']; this env's info has "
+                f"{sorted(info)}: train without privileged_critic"
+            )
+        state = info["state"]
+        return state.to(torch.float32).reshape(state.shape[0], -1).clone()
 
     def render(self, *args, **kwargs) -> Any:
         return self._env.render()

@@ -100,9 +100,10 @@ def load_policy(
     box = gym.spaces.Box(low, high, dtype=np.float32)
     learning = cfg["task_config"]["learning"]
     bounded = bool(learning.get("bounded_mean", False))  # runs before it: False
-    model = make_models(cfg["task"], layout, box, device, run_net(cfg), bounded_mean=bounded)[
-        "policy"
-    ]
+    state_size = int(cfg.get("privileged_state_size", 0))  # the critic's; acting ignores it
+    model = make_models(
+        cfg["task"], layout, box, device, run_net(cfg), bounded_mean=bounded, state_size=state_size
+    )["policy"]
     load_module(model, checkpoint, "policy", device)
     set_log_std_ceiling(model, learning, RL_RUN.step_of(checkpoint))
     model.eval()

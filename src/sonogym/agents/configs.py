@@ -322,7 +322,7 @@ def resume_config(saved: TrainConfig, **explicit: Any) -> TrainConfig:
 #: Settings of the learning (``TaskRLConfig.learning``, a ``LearningParams``), named flat.
 LEARNING_KEYS = (
     "reward_scale", "init_log_std", "final_log_std", "anneal_steps", "mean_bound_penalty",
-    "standardize_steps", "kl_follows_sigma",
+    "standardize_steps", "kl_follows_sigma", "privileged_critic",
 )  # fmt: skip
 #: Task-config settings ``apply_settings`` takes by name; besides them ``ppo.<field>``,
 #: ``a2c.<field>`` (the algorithm's table) and ``env.<option>`` (an env option).
@@ -398,11 +398,14 @@ def build_agent(
     device: str | torch.device = "cpu",
     write_interval: int = 0,
     checkpoint_interval: int = 0,
+    state_space=None,
 ):
     """The skrl agent for ``algo`` (PPO, A2C, or PPO with a safety filter's cost critic or a
     Lagrangian cost value) on ``cfg.task``, logging into ``out``.
 
-    ``write_interval`` / ``checkpoint_interval`` are in env steps (0 disables). Unsupported
+    ``write_interval`` / ``checkpoint_interval`` are in env steps (0 disables). ``state_space``
+    (a privileged critic's state, ``SkrlEnvAdapter.state_space``) adds skrl's states, which a
+    running standardiser scales before the critic reads them. Unsupported
     pairs raise ``ValueError`` naming the supported algorithms. ``ppo-sf`` needs
     ``models["cost_critic"]``, ``ppo-lag`` ``models["cost_value"]``.
     """
@@ -429,6 +432,10 @@ def build_agent(
         entropy_loss_scale=p.entropy_loss_scale,
         time_limit_bootstrap=p.time_limit_bootstrap,
         rewards_shaper=RewardScale(reward_scale) if reward_scale != 1.0 else None,
+        state_preprocessor=RunningStandardScaler if state_space is not None else None,
+        state_preprocessor_kwargs=(
+            {"size": state_space, "device": device} if state_space is not None else {}
+        ),
         experiment=ExperimentCfg(
             directory=str(out.parent),
             experiment_name=out.name,
@@ -470,6 +477,7 @@ def build_agent(
         models=models,
         memory=memory,
         observation_space=observation_space,
+        state_space=state_space,
         action_space=action_space,
         device=device,
         cfg=agent_cfg,

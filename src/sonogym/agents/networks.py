@@ -51,6 +51,7 @@ from sonogym.envs.registry import get_task
 
 VECTOR_MLP = (128, 128, 64)
 TRUNK_MLP = (512, 256, 128)
+PRIVILEGED_MLP = (128, 128)  # hidden layers of the privileged critic's state branch
 
 
 @dataclass(frozen=True)
@@ -216,6 +217,14 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
     The trunk's features of the last policy call are reused by the value call on the same
     observation tensor (skrl calls policy then value on the same inputs), so a PPO step runs
     the encoder once.
+
+    ``state_size`` > 0 makes the critic privileged (asymmetric actor-critic): the value adds
+    ``privileged_value(states)``, an MLP of the task's privileged state (skrl's ``states``,
+    e.g. the probe's pose in the goal frame), to the image value head. Why: the reward is a
+    difference of distances to the goal, so the return depends mostly on where the goal is,
+    which an image shows poorly; a critic that knows it gives the policy gradient advantages
+    with less noise. The policy never reads the state. The MLP's output layer starts at
+    zero, so a warm start from a run without it begins with that run's values.
     """
 
     def __init__(
@@ -229,6 +238,7 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         init_mean_gain: float = 1.0,
         mean_bound_penalty: float = 0.0,
         bounded_mean: bool = False,
+        state_size: int = 0,
     ) -> None:
         init_flat_model(self, layout, action_space, device)
         GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, role="policy")
@@ -243,6 +253,12 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
         # not saved: the trainer sets it from the step count (``log_std_ceiling``) each step
         self.register_buffer("log_std_max", torch.tensor(float("inf")), persistent=False)
         self.value_head = nn.Linear(self.encoder.out_features, 1)
+        self.privileged_value: nn.Sequential | None = None
+        if state_size > 0:
+            out = nn.Linear(PRIVILEGED_MLP[-1], 1)
+            nn.init.zeros_(out.weight)
+            nn.init.zeros_(out.bias)
+            self.privileged_value = nn.Sequential(mlp(state_size, PRIVILEGED_MLP), out)
         if mean_bound_penalty < 0:
             raise ValueError(f"mean_bound_penalty must be >= 0, got {mean_bound_penalty}")
         self.mean_bound_penalty = float(mean_bound_penalty)
@@ -285,7 +301,15 @@ class SharedActorCritic(GaussianMixin, DeterministicMixin, Model):
             return mean, {"log_std": log_std.expand(obs.shape[0], -1)}
         feats = self.features(obs)
         self._cache = None  # value is the last call on these inputs
-        return self.value_head(feats), {}
+        value = self.value_head(feats)
+        if self.privileged_value is not None:
+            states = inputs.get("states")
+            if states is None:
+                raise ValueError(
+                    "this critic is privileged: pass the env's states with the observations"
+                )
+            value = value + self.privileged_value(states)
+        return value, {}
 
     def _bound_gradient(self, mean: torch.Tensor):
         """A gradient hook on the policy mean that adds the gradient of
@@ -341,10 +365,12 @@ def make_models(
     init_mean_gain: float = 1.0,
     mean_bound_penalty: float = 0.0,
     bounded_mean: bool = False,
+    state_size: int = 0,
 ) -> dict[str, Model]:
-    """skrl ``models`` dict: the same ``SharedActorCritic`` as "policy" and "value"."""
+    """skrl ``models`` dict: the same ``SharedActorCritic`` as "policy" and "value"
+    (``state_size`` > 0: with a privileged critic of a state of that size)."""
     model = SharedActorCritic(
         task, layout, action_space, device, net, init_log_std, init_mean_gain,
-        mean_bound_penalty, bounded_mean,
+        mean_bound_penalty, bounded_mean, state_size,
     )  # fmt: skip
     return {"policy": model, "value": model}

@@ -265,6 +265,7 @@ def _run_training(
         env, cfg.rl.obs_downsample, cfg.rl.learning.obs_scales, seed=cfg.seed + start,
         standardize_vectors=cfg.rl.learning.standardize_vectors,
         stagger_episodes=cfg.rl.learning.stagger_episodes,
+        privileged_state=cfg.rl.learning.privileged_critic,
     )  # fmt: skip
     adapter.update_stats = statistics_update(cfg.rl, start)
     check_training_memory(cfg, adapter.observation_space.shape[0])  # before skrl allocates
@@ -274,6 +275,7 @@ def _run_training(
         cfg.rl, algo, models, adapter.observation_space, adapter.action_space,
         cfg.rl.num_envs, out, device=device, write_interval=write_interval,
         checkpoint_interval=0,  # checkpoints are ours: written atomically below
+        state_space=adapter.state_space,
     )  # fmt: skip
     if adapter.standardizer is not None:  # saved and restored with the agent
         agent.checkpoint_modules["obs_standardizer"] = adapter.standardizer
@@ -313,15 +315,16 @@ def _run_training(
             adapter.update_stats = statistics_update(cfg.rl, t)
             agent.pre_interaction(timestep=t, timesteps=steps)
             with torch.no_grad():
-                actions, _ = agent.act(obs, None, timestep=t, timesteps=steps)
+                states = adapter.state()  # None unless the critic is privileged
+                actions, _ = agent.act(obs, states, timestep=t, timesteps=steps)
                 next_obs, reward, terminated, truncated, info = adapter.step(actions)
                 agent.record_transition(
                     observations=obs,
-                    states=None,
+                    states=states,
                     actions=actions,
                     rewards=reward,
                     next_observations=adapter.final_observations(info, next_obs),
-                    next_states=None,
+                    next_states=adapter.transition_states(info),
                     terminated=terminated,
                     truncated=truncated,
                     infos=info,
@@ -426,9 +429,11 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
     task, net, device = cfg.task, cfg.rl.net, cfg.device
     layout, space = adapter.layout, adapter.action_space
     learning = cfg.rl.learning
+    state = adapter.state_space
     models = make_models(
         task, layout, space, device, net, learning.init_log_std, learning.init_mean_gain,
         learning.mean_bound_penalty, learning.bounded_mean,
+        0 if state is None else math.prod(state.shape),
     )  # fmt: skip
     if cfg.algo == "ppo-sf":
         from sonogym.agents.safety_filter import CostCritic
@@ -502,13 +507,16 @@ def _shipped_policy(given: Path) -> tuple[Path, Path]:
 
 def _interface(adapter: SkrlEnvAdapter) -> dict[str, Any]:
     """What a policy reads and writes, as ``config.json`` records it: the observation layout
-    and the action box (JSON values)."""
+    and the action box (JSON values), and the size of a privileged critic's state (0: none;
+    the critic's weights travel with the policy's)."""
+    state = adapter.state_space
     return to_jsonable({
         "obs_layout": {"keys": adapter.layout.keys, "shapes": adapter.layout.shapes},
         "action_space": {
             "low": adapter.action_space.low.tolist(),
             "high": adapter.action_space.high.tolist(),
         },
+        "privileged_state_size": 0 if state is None else math.prod(state.shape),
     })  # fmt: skip
 
 
@@ -534,7 +542,16 @@ def warm_start(agent, source: dict[str, Any], adapter: SkrlEnvAdapter) -> None:
     state = read_checkpoint(source["checkpoint"], agent.device)
     for name, module in agent.checkpoint_modules.items():
         if isinstance(module, torch.nn.Module) and name in state:
-            module.load_state_dict(state[name])
+            _load_warm(module, state[name])
+
+
+def _load_warm(module: torch.nn.Module, state: dict) -> None:
+    """``state`` into ``module``, where only a privileged critic's branch may be missing (it
+    then starts at its initial, zero output) or surplus (this run's critic reads no state)."""
+    missing, surplus = module.load_state_dict(state, strict=False)
+    odd = [k for k in (*missing, *surplus) if not k.startswith("privileged_value.")]
+    if odd:
+        raise ValueError(f"the warm-start weights do not fit this network: {odd[:5]}")
 
 
 def save_agent(agent, path: Path) -> Path:
@@ -587,14 +604,16 @@ def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]
             for k in range(4):  # one warm-up step, then three timed
                 if k == 1:
                     t0 = time.perf_counter()
-                a, _ = agent.act(obs, None, timestep=0, timesteps=cfg.steps)
+                a, _ = agent.act(obs, adapter.state(), timestep=0, timesteps=cfg.steps)
                 adapter.unwrapped.step(a)
             step_s = (time.perf_counter() - t0) / 3
         batch = max(1, p.rollouts * cfg.rl.num_envs // p.mini_batches)
-        x = obs[:1].expand(batch, -1).clone()
+        inputs = {"observations": obs[:1].expand(batch, -1).clone()}
+        if adapter.state() is not None:  # a privileged critic's input
+            inputs["states"] = adapter.state()[:1].expand(batch, -1).clone()
         t0 = time.perf_counter()
-        mean, _ = model.act({"observations": x}, role="policy")
-        value, _ = model.act({"observations": x}, role="value")
+        mean, _ = model.act(inputs, role="policy")
+        value, _ = model.act(inputs, role="value")
         (mean.sum() + value.sum()).backward()
         model.zero_grad(set_to_none=True)
         update_s = (time.perf_counter() - t0) * getattr(p, "learning_epochs", 1) * p.mini_batches

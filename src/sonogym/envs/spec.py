@@ -226,6 +226,7 @@ class LearningParams:
     standardize_vectors: bool = False  # running standardisation of vector observations
     standardize_steps: int = 0  # env steps per env the statistics learn for (0: the whole run)
     kl_follows_sigma: bool = False  # KL-adaptive lr threshold scaled by (sigma_0 / ceiling)^2
+    privileged_critic: bool = False  # training: the value also reads info["state"] (networks)
 
     def __post_init__(self) -> None:
         check_number_fields(self)  # NaN, inf; 2.0 steps becomes 2

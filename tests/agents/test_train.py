@@ -409,3 +409,20 @@ def test_privileged_critic_trains_on_the_state_and_the_policy_acts_without_it(tm
     _tiny("navigation", "ppo", back, steps=32, init_from=run / "checkpoints" / "agent_64.pt")
     assert json.loads((back / "config.json").read_text())["privileged_state_size"] == 0
     assert not any("privileged" in k for k in load_policy(back)[0].state_dict())
+
+
+@pytest.mark.parametrize(
+    ("task", "algo", "extra"),
+    [("surgery", "ppo-lag", {}), ("navigation", "a2c", {"a2c.mini_batches": 4})],
+)
+def test_privileged_critic_trains_with_the_other_algorithms(task, algo, extra, tmp_path):
+    """A2C and PPO-Lagrangian (its own update) feed the critic the states too."""
+    _tiny(task, algo, tmp_path / "run", steps=32, settings={"privileged_critic": True, **extra})
+    end = torch.load(tmp_path / "run" / "checkpoints" / "agent_32.pt", weights_only=True)
+    assert end["policy"]["privileged_value.1.weight"].abs().sum() > 0
+    assert torch.isfinite(end["state_preprocessor"]["running_variance"]).all()
+
+
+def test_privileged_critic_refuses_single_sample_mini_batches(tmp_path):
+    with pytest.raises(ValueError, match="needs >= 2 samples per mini-batch"):
+        _tiny("navigation", "a2c", tmp_path / "run", steps=32, settings={"privileged_critic": True})

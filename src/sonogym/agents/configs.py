@@ -418,6 +418,11 @@ def build_agent(
 
     p, reward_scale = cfg.params(algo), cfg.learning.reward_scale
     out = Path(out)
+    if state_space is not None and p.rollouts * num_envs < 2 * p.mini_batches:
+        raise ValueError(  # skrl's running scaler takes each mini-batch's (unbiased) variance
+            f"privileged_critic needs >= 2 samples per mini-batch: {p.rollouts} rollouts x "
+            f"{num_envs} envs / {p.mini_batches} mini-batches; use more envs or fewer mini-batches"
+        )
     common = dict(
         rollouts=p.rollouts,
         mini_batches=p.mini_batches,

@@ -119,7 +119,8 @@ class PPOLagrangian(PPO):
         cfg, mem = self.cfg, self.memory
         with torch.no_grad():
             inputs = {
-                "observations": self._observation_preprocessor(self._current_next_observations)
+                "observations": self._observation_preprocessor(self._current_next_observations),
+                "states": self._state_preprocessor(self._current_next_states),  # None: unused
             }
             self.value.enable_training_mode(False)
             last_values, _ = self.value.act(inputs, role="value")
@@ -164,14 +165,19 @@ class PPOLagrangian(PPO):
             "cost_returns",
             "cost_advantages",
         ]
+        privileged = self.state_space is not None  # a privileged critic reads the states too
+        if privileged:
+            names.append("states")
         sums = {"policy": 0.0, "value": 0.0, "cost_value": 0.0}
         n_batches = 0
         for epoch in range(cfg.learning_epochs):
             kls = []
-            for obs, act, old_logp, old_v, ret, adv, c_ret, c_adv in mem.sample(
+            for obs, act, old_logp, old_v, ret, adv, c_ret, c_adv, *states in mem.sample(
                 names=names, batch_size=len(mem), mini_batches=cfg.mini_batches
             ):
                 inputs = {"observations": self._observation_preprocessor(obs, train=not epoch)}
+                if privileged:
+                    inputs["states"] = self._state_preprocessor(states[0], train=not epoch)
                 _, out = self.policy.act({**inputs, "taken_actions": act}, role="policy")
                 log_ratio = out["log_prob"] - old_logp
                 with torch.no_grad():

@@ -426,3 +426,4 @@ def test_privileged_critic_trains_with_the_other_algorithms(task, algo, extra, t
 def test_privileged_critic_refuses_single_sample_mini_batches(tmp_path):
     with pytest.raises(ValueError, match="needs >= 2 samples per mini-batch"):
         _tiny("navigation", "a2c", tmp_path / "run", steps=32, settings={"privileged_critic": True})
+    assert not (tmp_path / "run").exists()  # refused before anything was built or written

@@ -149,6 +149,13 @@ class TrainConfig:
                 f"final_log_std {final} is above init_log_std {learning.init_log_std}: the "
                 "ceiling only lowers sigma; pass final_log_std <= init_log_std, or None for none"
             )
+        p = self.params
+        if learning.privileged_critic and p.rollouts * self.rl.num_envs < 2 * p.mini_batches:
+            raise ValueError(  # skrl's running scaler takes each mini-batch's (unbiased) variance
+                f"privileged_critic needs >= 2 samples per mini-batch: {p.rollouts} rollouts x "
+                f"{self.rl.num_envs} envs / {p.mini_batches} mini-batches; use more envs or "
+                "fewer mini-batches"
+            )
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         for name in ("checkpoint_interval", "write_interval"):
@@ -418,11 +425,6 @@ def build_agent(
 
     p, reward_scale = cfg.params(algo), cfg.learning.reward_scale
     out = Path(out)
-    if state_space is not None and p.rollouts * num_envs < 2 * p.mini_batches:
-        raise ValueError(  # skrl's running scaler takes each mini-batch's (unbiased) variance
-            f"privileged_critic needs >= 2 samples per mini-batch: {p.rollouts} rollouts x "
-            f"{num_envs} envs / {p.mini_batches} mini-batches; use more envs or fewer mini-batches"
-        )
     common = dict(
         rollouts=p.rollouts,
         mini_batches=p.mini_batches,

@@ -18,8 +18,10 @@ randomisation), and reports, on frames within 20 mm of {G}:
   that the probe is near {G}: a regressor that does no better read nothing from the image.
 
 ``--history L`` adds the frame L steps earlier, its heading and the probe's motion since
-(the arm knows its own pose), to measure what a short memory adds. The model is the last
-epoch's (no selection on the test sets).
+(the arm knows its own pose), to measure what a short memory adds. ``--net`` (a network size
+of ``sonogym.agents.networks``) and ``--pool`` (the image's average pooling) measure what a
+larger encoder or a finer image adds. The model is the last epoch's (no selection on the test
+sets).
 """
 
 from __future__ import annotations
@@ -46,7 +48,9 @@ NEAR = 0.02  # m: frames whose probe lies this close to {G} across the skin are 
 TARGET_SCALE = torch.tensor([100.0, 100.0, 2.0])
 
 
-def record(patients: list, steps: int, randomise: bool, seed: int) -> dict[str, torch.Tensor]:
+def record(
+    patients: list, steps: int, randomise: bool, seed: int, pool: int = POOL
+) -> dict[str, torch.Tensor]:
     """Per step and env (index t * ENVS + env): pooled image, heading, goal seen from the probe
     (x_U, y_U, rotation about z_U), the probe's (x, y) in {G} and its step in the episode."""
     env = make_vec(
@@ -59,7 +63,7 @@ def record(patients: list, steps: int, randomise: bool, seed: int) -> dict[str, 
     for _ in range(steps):
         p, q = info["state"][:, :3], info["state"][:, 3:]
         goal_u = goal_in_probe(info["state"])
-        rows["image"].append(F.avg_pool2d(obs["image"].float(), POOL).half())
+        rows["image"].append(F.avg_pool2d(obs["image"].float(), pool).half())
         rows["heading"].append(obs["heading"].float())
         rows["goal"].append(torch.stack([goal_u[:, 0], goal_u[:, 1], q[:, 2]], -1).float())
         rows["probe"].append(p[:, :2].float())  # across the skin: z_G is the beam
@@ -97,9 +101,11 @@ def layout(d: dict, lag: int) -> ObsLayout:
     return ObsLayout(("heading", "image"), ((2,), (1, h, w)))
 
 
-def fit(x: torch.Tensor, y: torch.Tensor, lay: ObsLayout, epochs: int, seed: int) -> nn.Module:
+def fit(
+    x: torch.Tensor, y: torch.Tensor, lay: ObsLayout, epochs: int, seed: int, net: str = "lean"
+) -> nn.Module:
     torch.manual_seed(seed)
-    enc = Encoder("navigation", lay, "lean")
+    enc = Encoder("navigation", lay, net)
     model = nn.Sequential(enc, nn.Linear(enc.out_features, 3))
     opt = torch.optim.Adam(model.parameters(), 3e-4)
     for _ in range(epochs):
@@ -130,37 +136,48 @@ def score(model: nn.Module, x, y, dist) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--train", default="100-131", help="training phantom seeds A-B")
+    ap.add_argument(
+        "--train",
+        default="100-131",
+        help="training patients: phantom seeds A-B or a subject's variants DIR@A-B",
+    )
     ap.add_argument("--held-out", default="5-9", help="held-out phantom seeds A-B")
     ap.add_argument("--real", default="tests/data/totalsegmentator_example")
     ap.add_argument("--steps", type=int, default=1500, help="recorded steps of the training walk")
     ap.add_argument("--test-steps", type=int, default=400)
     ap.add_argument("--epochs", type=int, default=3)
     ap.add_argument("--history", type=int, default=0, help="lag L of the earlier frame (0: none)")
+    ap.add_argument(
+        "--net", default="lean", help="encoder size: lean (the shipped policy's), small or paper"
+    )
+    ap.add_argument("--pool", type=int, default=POOL, help="average pooling of the image")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.process_time()
-    train = record(parse_patients([args.train]), args.steps, True, args.seed)
+    train = record(parse_patients([args.train]), args.steps, True, args.seed, args.pool)
     x, y, _ = samples(train, args.history)
-    model = fit(x, y, layout(train, args.history), args.epochs, args.seed)
+    model = fit(x, y, layout(train, args.history), args.epochs, args.seed, args.net)
     print(
-        f"history {args.history}, {len(x)} training frames from phantoms {args.train}, "
-        f"{args.epochs} epochs"
+        f"history {args.history}, net {args.net}, image pooled {args.pool}x, {len(x)} training "
+        f"frames from {args.train}, {args.epochs} epochs"
     )
     print("| test | frames | regressor mean / median [mm] | within 10 | x_U | y_U | yaw [deg] | "
           "zero predictor mean / median | within 10 | x_U | y_U |")  # fmt: skip
     print("|---|---:|---|---:|---:|---:|---:|---|---:|---:|---:|")
     tests = {
         # the same phantoms on a new walk without randomisation: what the regressor learned
-        f"training phantoms {args.train}, new walk": parse_patients([args.train]),
+        f"training patients {args.train}, new walk": parse_patients([args.train]),
         f"held-out phantoms {args.held_out}": parse_patients([args.held_out]),
     }
     if args.real:
         tests["real subject"] = parse_patients([args.real])
     for name, patients in tests.items():
-        r = score(model, *samples(record(patients, args.test_steps, False, 1000), args.history))
+        r = score(
+            model,
+            *samples(record(patients, args.test_steps, False, 1000, args.pool), args.history),
+        )
         print(
             f"| {name} | {r['frames']} | {r['regressor_mean']:.1f} / {r['regressor_median']:.1f}"
             f" | {r['regressor_within10']:.0f} % | {r['regressor_x']:.1f} | {r['regressor_y']:.1f}"

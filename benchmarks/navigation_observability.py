@@ -4,13 +4,13 @@ in docs/envs.md ("How much of the goal the image shows") come from
 
     python benchmarks/navigation_observability.py [--history 10]
 
-It records the ``us_heading`` observation (image average-pooled 4x as the ``cpu`` preset's
-policy sees it, and the heading) on a random walk pulled toward {G} (the expert's command
+It records the ``us_heading`` observation (image average-pooled 4x by default, as the ``cpu``
+preset's policy sees it, and the heading) on a random walk pulled toward {G} (the expert's command
 x 0.3 plus Gaussian noise of 1.5 action units per step: a stationary spread of ~13 mm per axis
-and ~25 deg in yaw, the region a policy ends in), then fits the shipped policy's encoder
-(``net="lean"``) with a linear head to the goal seen from the probe (x_U, y_U in mm and the
-rotation about z_U) by supervised regression on the training phantoms (with imaging
-randomisation), and reports, on frames within 20 mm of {G}:
+and ~25 deg in yaw, the region a policy ends in), then fits an encoder (by default the
+shipped policy's, ``net="lean"``) with a linear head to the goal seen from the probe (x_U,
+y_U in mm and the rotation about z_U) by supervised regression on the training phantoms
+(with imaging randomisation), and reports, on frames within 20 mm of {G}:
 
 * the 2-D error of the regressed goal (mean, median, share within 10 mm) and per axis
   (x_U: across the image, y_U: out of plane, cranio-caudal at the goal's yaw);

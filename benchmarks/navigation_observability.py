@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from sonogym.agents.adapter import ObsLayout
-from sonogym.agents.networks import Encoder
+from sonogym.agents.networks import NET_SIZES, Encoder
 from sonogym.envs.navigation import expert, goal_in_probe
 from sonogym.envs.options import parse_patients
 from sonogym.envs.registry import make_vec
@@ -148,7 +148,7 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=3)
     ap.add_argument("--history", type=int, default=0, help="lag L of the earlier frame (0: none)")
     ap.add_argument(
-        "--net", default="lean", help="encoder size: lean (the shipped policy's), small or paper"
+        "--net", default="lean", choices=list(NET_SIZES), help="encoder size (lean: the shipped's)"
     )
     ap.add_argument("--pool", type=int, default=POOL, help="average pooling of the image")
     ap.add_argument("--seed", type=int, default=0)

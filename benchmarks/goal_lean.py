@@ -7,11 +7,13 @@ the spine follows it. The figures in docs/envs.md (``observe_tilt``) come from
 For each patient: the lean of the beam toward +x_P at {G} (the skin's smoothed inward normal
 above the L4 body centroid, ``SkinSurface.surface_pose``), in degrees, and where on the skin
 (x, z from {G}, mm; 0.5 mm grid over +-30 mm) the transverse view's beam passes nearest the
-centroid instead: how far a goal "centred on the target" would lie from {G}. With ``--episodes``
-(logs ``sonogym eval`` wrote; episode k ran on patient (k % num_envs) % P of its test env), also
-each patient's median final x (mm, across the spine, from {G}) of the ``policy`` episodes that
-ended within 20 mm of {G} along the spine (a level off is another error), and over the patients
-found in the logs the correlation of that median with sin(lean) and the least-squares slope.
+centroid instead: how far a goal "centred on the target" would lie from {G}; over the patients,
+the mean and median of that distance (where a policy that centred the target perfectly would
+end). With ``--episodes`` (logs ``sonogym eval`` wrote; episode k ran on patient
+(k % num_envs) % P of its test env), also each patient's median final x (mm, across the spine,
+from {G}) of the ``policy`` episodes that ended within 20 mm of {G} along the spine (a level off
+is another error), and over the patients found in the logs the correlation of that median with
+sin(lean) and the least-squares slope.
 """
 
 from __future__ import annotations
@@ -63,19 +65,25 @@ def main() -> None:
     args = ap.parse_args()
     specs = parse_patients(args.patients)
     ends = final_x_by_patient(args.episodes)
-    pairs = []
+    pairs, centred = [], []
     print(
         "| patient | lean to +x_P [deg] | centred goal x, z [mm] | median final x [mm] | episodes |"
     )
     print("|---|---|---|---|---|")
     for spec, patient in zip(specs, resolve_patients(specs, SPACING), strict=True):
         s, cx, cz = goal_views(patient)
+        centred.append(math.hypot(cx, cz))
         xs = ends.get(str(spec), [])
         med = float(np.median(xs)) if xs else float("nan")
         if xs:
             pairs.append((s, med))
         lean = math.degrees(math.asin(s))
         print(f"| {spec} | {lean:+.1f} | {cx:+.1f}, {cz:+.1f} | {med:+.1f} | {len(xs)} |")
+    c = np.array(centred)
+    print(
+        f"\nthe centred view lies {np.mean(c):.1f} mm (mean; median {np.median(c):.1f}, "
+        f"{c.min():.1f}-{c.max():.1f}) from {{G}} over the {len(c)} patients"
+    )
     if len(pairs) >= 3:
         a = np.array(pairs)
         r = np.corrcoef(a[:, 0], a[:, 1])[0, 1]

@@ -20,7 +20,9 @@ y_U in mm and the rotation about z_U) by supervised regression on the training p
 ``--history L`` adds the frame L steps earlier, its heading and the probe's motion since
 (the arm knows its own pose), to measure what a short memory adds. ``--net`` (a network size
 of ``sonogym.agents.networks``) and ``--pool`` (the image's average pooling) measure what a
-larger encoder or a finer image adds. The model is the last epoch's (no selection on the test
+larger encoder or a finer image adds. ``--tilt`` adds the beam's tilt from the patient's
+vertical (``observe_tilt``; with ``--history``, at both frames): what the arm's pose says about
+a patient rolled on the table. The model is the last epoch's (no selection on the test
 sets).
 """
 
@@ -51,20 +53,22 @@ TARGET_SCALE = torch.tensor([100.0, 100.0, 2.0])
 def record(
     patients: list, steps: int, randomise: bool, seed: int, pool: int = POOL
 ) -> dict[str, torch.Tensor]:
-    """Per step and env (index t * ENVS + env): pooled image, heading, goal seen from the probe
-    (x_U, y_U, rotation about z_U), the probe's (x, y) in {G} and its step in the episode."""
+    """Per step and env (index t * ENVS + env): pooled image, heading, beam tilt, goal seen from
+    the probe (x_U, y_U, rotation about z_U), the probe's (x, y) in {G} and its step in the
+    episode."""
     env = make_vec(
         "navigation", ENVS, patients=patients, obs_mode="us_heading",
-        imaging_randomization=randomise,
+        imaging_randomization=randomise, observe_tilt=True,
     ).unwrapped  # fmt: skip
     g = torch.Generator().manual_seed(seed)
     obs, info = env.reset(seed=seed)
-    rows = {k: [] for k in ("image", "heading", "goal", "probe", "step")}
+    rows = {k: [] for k in ("image", "heading", "tilt", "goal", "probe", "step")}
     for _ in range(steps):
         p, q = info["state"][:, :3], info["state"][:, 3:]
         goal_u = goal_in_probe(info["state"])
         rows["image"].append(F.avg_pool2d(obs["image"].float(), pool).half())
         rows["heading"].append(obs["heading"].float())
+        rows["tilt"].append(obs["tilt"].float())
         rows["goal"].append(torch.stack([goal_u[:, 0], goal_u[:, 1], q[:, 2]], -1).float())
         rows["probe"].append(p[:, :2].float())  # across the skin: z_G is the beam
         # the step counter is 0 on a reset frame, whose info still holds the ended episode
@@ -76,9 +80,11 @@ def record(
     return {k: torch.cat(v) for k, v in rows.items()}
 
 
-def samples(d: dict, lag: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def samples(
+    d: dict, lag: int, tilt: bool = False
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Flat inputs, scaled targets and each frame's distance to {G} (m); with ``lag`` > 0 only
-    frames whose episode is at least ``lag`` steps old."""
+    frames whose episode is at least ``lag`` steps old; ``tilt`` adds the beam's tilt."""
     i = torch.arange(lag * ENVS, len(d["step"]))
     j = i - lag * ENVS
     ok = (d["step"][i] - d["step"][j] == lag) & (d["step"][i] > 0)
@@ -91,14 +97,20 @@ def samples(d: dict, lag: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor
     parts.append(image.flatten(1))
     if lag:
         parts.append((d["probe"][i] - d["probe"][j]) * 100.0)  # motion per 10 mm
+    if tilt:
+        parts.append(torch.cat([d["tilt"][i], d["tilt"][j]], 1) if lag else d["tilt"][i])
     return torch.cat(parts, 1), d["goal"][i] * TARGET_SCALE, d["probe"][i].norm(dim=1)
 
 
-def layout(d: dict, lag: int) -> ObsLayout:
+def layout(d: dict, lag: int, tilt: bool = False) -> ObsLayout:
     h, w = d["image"].shape[-2:]
+    frames = 2 if lag else 1
+    keys, shapes = ["heading", "image"], [(2 * frames,), (frames, h, w)]
     if lag:
-        return ObsLayout(("heading", "image", "motion"), ((4,), (2, h, w), (2,)))
-    return ObsLayout(("heading", "image"), ((2,), (1, h, w)))
+        keys, shapes = keys + ["motion"], shapes + [(2,)]
+    if tilt:
+        keys, shapes = keys + ["tilt"], shapes + [(2 * frames,)]
+    return ObsLayout(tuple(keys), tuple(shapes))
 
 
 def fit(
@@ -151,16 +163,18 @@ def main() -> None:
         "--net", default="lean", choices=list(NET_SIZES), help="encoder size (lean: the shipped's)"
     )
     ap.add_argument("--pool", type=int, default=POOL, help="average pooling of the image")
+    ap.add_argument("--tilt", action="store_true", help="add the beam's tilt (observe_tilt)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.process_time()
     train = record(parse_patients([args.train]), args.steps, True, args.seed, args.pool)
-    x, y, _ = samples(train, args.history)
-    model = fit(x, y, layout(train, args.history), args.epochs, args.seed, args.net)
+    x, y, _ = samples(train, args.history, args.tilt)
+    model = fit(x, y, layout(train, args.history, args.tilt), args.epochs, args.seed, args.net)
     print(
-        f"history {args.history}, net {args.net}, image pooled {args.pool}x, {len(x)} training "
+        f"history {args.history}, tilt {args.tilt}, net {args.net}, image pooled {args.pool}x, "
+        f"{len(x)} training "
         f"frames from {args.train}, {args.epochs} epochs"
     )
     print("| test | frames | regressor mean / median [mm] | within 10 | x_U | y_U | yaw [deg] | "
@@ -176,7 +190,9 @@ def main() -> None:
     for name, patients in tests.items():
         r = score(
             model,
-            *samples(record(patients, args.test_steps, False, 1000, args.pool), args.history),
+            *samples(
+                record(patients, args.test_steps, False, 1000, args.pool), args.history, args.tilt
+            ),
         )
         print(
             f"| {name} | {r['frames']} | {r['regressor_mean']:.1f} / {r['regressor_median']:.1f}"

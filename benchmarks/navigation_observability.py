@@ -89,16 +89,16 @@ def samples(
     j = i - lag * ENVS
     ok = (d["step"][i] - d["step"][j] == lag) & (d["step"][i] > 0)
     i, j = i[ok], j[ok]
-    parts = [d["heading"][i]]
-    image = d["image"][i].float()
-    if lag:
-        parts = [torch.cat([d["heading"][i], d["heading"][j]], 1)]
-        image = torch.cat([image, d["image"][j].float()], 1)
-    parts.append(image.flatten(1))
+    frames = [i, j] if lag else [i]
+
+    def at_frames(key: str) -> torch.Tensor:  # this frame's entry, then the earlier frame's
+        return torch.cat([d[key][k].float() for k in frames], 1)
+
+    parts = [at_frames("heading"), at_frames("image").flatten(1)]
     if lag:
         parts.append((d["probe"][i] - d["probe"][j]) * 100.0)  # motion per 10 mm
     if tilt:
-        parts.append(torch.cat([d["tilt"][i], d["tilt"][j]], 1) if lag else d["tilt"][i])
+        parts.append(at_frames("tilt"))
     return torch.cat(parts, 1), d["goal"][i] * TARGET_SCALE, d["probe"][i].norm(dim=1)
 
 
@@ -174,8 +174,7 @@ def main() -> None:
     model = fit(x, y, layout(train, args.history, args.tilt), args.epochs, args.seed, args.net)
     print(
         f"history {args.history}, tilt {args.tilt}, net {args.net}, image pooled {args.pool}x, "
-        f"{len(x)} training "
-        f"frames from {args.train}, {args.epochs} epochs"
+        f"{len(x)} training frames from {args.train}, {args.epochs} epochs"
     )
     print("| test | frames | regressor mean / median [mm] | within 10 | x_U | y_U | yaw [deg] | "
           "zero predictor mean / median | within 10 | x_U | y_U |")  # fmt: skip

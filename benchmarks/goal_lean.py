@@ -9,11 +9,15 @@ above the L4 body centroid, ``SkinSurface.surface_pose``), in degrees, and where
 (x, z from {G}, mm; 0.5 mm grid over +-30 mm) the transverse view's beam passes nearest the
 centroid instead: how far a goal "centred on the target" would lie from {G}; over the patients,
 the mean and median of that distance (where a policy that centred the target perfectly would
-end). With ``--episodes`` (logs ``sonogym eval`` wrote; episode k ran on patient
-(k % num_envs) % P of its test env), also each patient's median final x (mm, across the spine,
-from {G}) of the ``policy`` episodes that ended within 20 mm of {G} along the spine (a level off
-is another error), and over the patients found in the logs the correlation of that median with
-sin(lean) and the least-squares slope.
+end). Also which vertebra the transverse view at {G} shows (the level whose bone most of its
+beams within +-20 mm across meet first, ``morphometry.first_bone_labels``, and on how many of
+the 21) and how far along the spine (z from {G}, 2 mm steps over -30..+40 mm) the view whose
+beams meet L4 first most often lies: the beam leans with the back's slope, so the view above
+the centroid can show the arch below. With ``--episodes`` (logs ``sonogym eval`` wrote;
+episode k ran on patient (k % num_envs) % P of its test env), also each patient's median final
+x (mm, across the spine, from {G}) of the ``policy`` episodes that ended within 20 mm of {G}
+along the spine (a level off is another error), and over the patients found in the logs the
+correlation of that median with sin(lean) and the least-squares slope.
 """
 
 from __future__ import annotations
@@ -24,11 +28,15 @@ import math
 import numpy as np
 import torch
 
+from sonogym.anatomy import labels as L
+from sonogym.anatomy.morphometry import first_bone_labels
 from sonogym.envs.options import parse_patients
 from sonogym.envs.patients import TARGET, resolve_patients
 from sonogym.evaluation.episodes import episode_patient, load_log
 
 SPACING = 0.001  # m, the training phantoms' voxel size
+BEAMS = np.arange(-20.0, 20.1, 2.0)  # mm, lateral offsets of the beams read per view
+LEVEL_NAMES = {i: lv for lv, i in L.VERTEBRA_IDS.items()} | {L.LABEL_IDS["sacrum"]: "sacrum"}
 
 
 def goal_views(patient) -> tuple[float, float, float]:
@@ -44,6 +52,22 @@ def goal_views(patient) -> tuple[float, float, float]:
     j = int(miss.argmin())
     at_goal = len(gx) // 2  # the grid's centre: offset (0, 0)
     return float(beam[at_goal, 0]), float(gx[j]) * 1e3, float(gz[j]) * 1e3
+
+
+def level_views(patient) -> tuple[str, int, float]:
+    """(the level the transverse view at {G} shows, on how many of its ``BEAMS``, and the z (mm
+    from {G}) of the view whose beams meet L4 first most often; nearest {G} on ties)."""
+    c = patient.landmarks.vertebra(TARGET).centre
+    l4 = L.VERTEBRA_IDS[TARGET]
+
+    def first(dz: float) -> np.ndarray:
+        return first_bone_labels(patient, c[0], c[2] + dz * 1e-3, math.pi, BEAMS)
+
+    ids, counts = np.unique(first(0.0), return_counts=True)
+    shown = int(ids[counts.argmax()])
+    steps = sorted(np.arange(-30.0, 40.1, 2.0), key=abs)
+    best = max(steps, key=lambda dz: int((first(dz) == l4).sum()))  # first max: nearest {G}
+    return LEVEL_NAMES.get(shown, "none" if shown == 0 else str(shown)), int(counts.max()), best
 
 
 def final_x_by_patient(paths: list[str]) -> dict[str, list[float]]:
@@ -65,11 +89,12 @@ def main() -> None:
     args = ap.parse_args()
     specs = parse_patients(args.patients)
     ends = final_x_by_patient(args.episodes)
-    pairs, centred = [], []
+    pairs, centred, l4_views = [], [], []
     print(
-        "| patient | lean to +x_P [deg] | centred goal x, z [mm] | median final x [mm] | episodes |"
+        "| patient | lean to +x_P [deg] | centred goal x, z [mm] | {G} view shows "
+        "| L4 view z [mm] | median final x [mm] | episodes |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for spec, patient in zip(specs, resolve_patients(specs, SPACING), strict=True):
         s, cx, cz = goal_views(patient)
         centred.append(math.hypot(cx, cz))
@@ -77,12 +102,24 @@ def main() -> None:
         med = float(np.median(xs)) if xs else float("nan")
         if xs:
             pairs.append((s, med))
+        shown, n, l4z = level_views(patient)
+        l4_views.append((shown, l4z))
         lean = math.degrees(math.asin(s))
-        print(f"| {spec} | {lean:+.1f} | {cx:+.1f}, {cz:+.1f} | {med:+.1f} | {len(xs)} |")
+        print(
+            f"| {spec} | {lean:+.1f} | {cx:+.1f}, {cz:+.1f} | {shown} ({n}/{len(BEAMS)}) "
+            f"| {l4z:+.0f} | {med:+.1f} | {len(xs)} |"
+        )
     c = np.array(centred)
     print(
         f"\nthe centred view lies {np.mean(c):.1f} mm (mean; median {np.median(c):.1f}, "
         f"{c.min():.1f}-{c.max():.1f}) from {{G}} over the {len(c)} patients"
+    )
+    shows_l4 = sum(shown == TARGET for shown, _ in l4_views)
+    zs = np.array([z for _, z in l4_views])
+    print(
+        f"the view at {{G}} shows {TARGET} in {shows_l4} of {len(zs)} patients; the view meeting "
+        f"{TARGET} most lies {np.median(zs):+.0f} mm along the spine from {{G}} (median; "
+        f"{zs.min():+.0f}..{zs.max():+.0f})"
     )
     if len(pairs) >= 3:
         a = np.array(pairs)

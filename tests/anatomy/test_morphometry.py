@@ -18,6 +18,7 @@ from sonogym.anatomy.morphometry import (
     LEVELS,
     PROFILE_OFFSETS,
     bone_hit_depths,
+    first_bone_labels,
     measure,
     muscle_profile,
     skin_distance,
@@ -57,6 +58,9 @@ def test_bone_hit_depths_and_skin_distance_on_a_known_slab():
             assert di == 100.0  # through the gap: no bone in the image
         else:
             assert abs(di - (30.0 - skin * 1e3)) <= 0.5, (ui, di)
+    # the bone each beam meets first: the L4 plate, nothing through the gap
+    first = first_bone_labels(p, 0.0, 0.0, math.pi, u)
+    assert first.tolist() == [0 if abs(ui) < 5 else L.VERTEBRA_IDS["L4"] for ui in u]
     pts = np.array([[0.0, 0.02, 0.0], [0.01, 0.031, 0.0]])
     assert np.allclose(skin_distance(p, pts), (pts[:, 1] - skin) * 1e3, atol=0.3)
 

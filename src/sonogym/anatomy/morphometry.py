@@ -262,6 +262,22 @@ def bone_hit_depths(
     return _first_depth(_is_bone(lab) & ok, max_depth)
 
 
+def first_bone_labels(
+    patient,
+    x: float,
+    z: float,
+    yaw: float,
+    offsets,
+    max_depth: float = PROFILE_DEPTH,
+) -> np.ndarray:
+    """(len(offsets),) label id of the first bone each beam of ``bone_hit_depths`` meets (which
+    vertebra a view shows at each lateral offset), 0 where it meets none within ``max_depth``."""
+    lab, ok = _beam_labels(patient, x, z, yaw, offsets, max_depth)
+    hit = _is_bone(lab) & ok
+    first = lab[np.arange(len(lab)), hit.argmax(1)]
+    return np.where(hit.any(1), first, 0).astype(np.int64)
+
+
 def _is_bone(lab: np.ndarray) -> np.ndarray:
     return np.isin(lab, np.fromiter(L.BONE_IDS, np.uint8))
 

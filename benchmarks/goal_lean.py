@@ -63,10 +63,10 @@ def level_views(patient) -> tuple[str, int, float]:
     def first(dz: float) -> np.ndarray:
         return first_bone_labels(patient, c[0], c[2] + dz * 1e-3, math.pi, BEAMS)
 
-    ids, counts = np.unique(first(0.0), return_counts=True)
+    views = {dz: first(dz) for dz in sorted(np.arange(-30.0, 40.1, 2.0), key=abs)}  # {G} first
+    ids, counts = np.unique(views[0.0], return_counts=True)
     shown = int(ids[counts.argmax()])
-    steps = sorted(np.arange(-30.0, 40.1, 2.0), key=abs)
-    best = max(steps, key=lambda dz: int((first(dz) == l4).sum()))  # first max: nearest {G}
+    best = max(views, key=lambda dz: int((views[dz] == l4).sum()))  # first max: nearest {G}
     return LEVEL_NAMES.get(shown, "none" if shown == 0 else str(shown)), int(counts.max()), best
 
 

@@ -61,11 +61,18 @@ def test_the_card_lists_only_evaluations_of_the_exported_checkpoint(tiny_run, tm
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     for stem, ckpt in (("eval", "agent_64.pt"), ("eval-old", "agent_32.pt")):
-        table = {"protocol": stem, "trials": 4, "checkpoint": ckpt, "results": rows}
+        table = {"protocol": stem, "trials": 4, "seed": 7, "num_envs": 3, "checkpoint": ckpt,
+                 "results": rows}  # fmt: skip
         (run / f"{stem}.json").write_text(json.dumps(table))
-    P.export_pretrained(run, "nav-test", root=tmp_path / "shipped")
+    dest = P.export_pretrained(run, "nav-test", root=tmp_path / "shipped")
     card = P.read_card("nav-test", tmp_path / "shipped")
     assert list(card["evaluations"]) == ["eval"] and card["checkpoint"] == "agent_64.pt"
+    # the card says how to draw the same starts again: trials, seed and env count
+    assert card["evaluations"]["eval"]["seed"] == 7 and card["evaluations"]["eval"]["num_envs"] == 3
+    assert (
+        "### eval (4 episodes, seed 7, 3 envs, checkpoint agent_64.pt)"
+        in (dest / "model_card.md").read_text()
+    )
     P.export_pretrained(
         run, "nav-old", root=tmp_path / "shipped", checkpoint=run / "checkpoints" / "agent_32.pt"
     )
@@ -84,6 +91,7 @@ def test_eval_pretrained_writes_a_runs_table_to_out(tiny_run, tmp_path, monkeypa
     assert res.exit_code == 0, res.output
     table = json.loads((out / "eval.json").read_text())
     assert table["checkpoint"] == P.WEIGHTS and set(table["results"]) >= {"policy", "expert"}
+    assert (table["trials"], table["seed"], table["num_envs"]) == (2, 1000, 2)
     assert (out / "episodes" / "idt.npz").is_file()
     # the same evaluation of the run's own checkpoint gives the same figures
     same = runner.invoke(app, ["eval", "--run", str(tiny_run), "--trials", "2", "--envs", "2",

@@ -138,6 +138,9 @@ def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[st
         results = table.get("results", {})
         evals[table.get("protocol", f.stem)] = {
             "trials": table.get("trials"),
+            # with trials, the seed and env count fix the starts (absent in older tables)
+            "seed": table.get("seed"),
+            "num_envs": table.get("num_envs"),
             "checkpoint": table.get("checkpoint"),
             "test_env": table.get("env_overrides", {}),
             "results": results,
@@ -221,7 +224,10 @@ def card_markdown(card: dict[str, Any]) -> str:
         "",
     ]
     for proto, e in card["evaluations"].items():
-        lines += [f"### {proto} ({e['trials']} episodes, checkpoint {e['checkpoint']})", ""]
+        drawn = [f"{e['trials']} episodes"]  # and what draws the same starts again
+        drawn += [f"seed {e['seed']}"] if e.get("seed") is not None else []
+        drawn += [f"{e['num_envs']} envs"] if e.get("num_envs") else []
+        lines += [f"### {proto} ({', '.join(drawn)}, checkpoint {e['checkpoint']})", ""]
         if e.get("test_env"):
             lines += [f"test env options: `{json.dumps(e['test_env'])}`", ""]
         rows = e["results"]

@@ -157,6 +157,8 @@ def evaluate_run(
         "task": trained.task,
         "trials": trials,
         "seed": seed,
+        # each env count draws other starts: with trials and seed it fixes the figures
+        "num_envs": envs,
         "protocol": name,
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),

@@ -5,11 +5,11 @@
 From ``sonogym eval`` episode logs (the ``policy`` controller's tracked point at the end of each
 episode, x across the spine and z along it, mm from {G}): the median |x| and |z|, the share of
 level misses (|z| > ``LEVEL_MM``, a neighbouring vertebra's view: adjacent lumbar levels lie
-~35 mm apart, and the goal view's own level ends within ~15 mm), and the frontal-plane error's
+~35 mm apart, so 20 mm is past halfway to the next), and the frontal-plane error's
 mean, median and share within 10 mm as run and with one part removed: x = 0 (only the error
-along the spine left), z = 0 (only the error across it), and level misses' z set to 0 (every
-episode at the right level). A target that the error across the spine alone already misses
-cannot be met by better level finding, and the other way round.
+along the spine left), z = 0 (only the error across it), and level misses' z set to 0 (those
+episodes moved to the goal's height, the others as run). A target that the error across the
+spine alone already misses cannot be met by better level finding, and the other way round.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def what_if(x: np.ndarray, z: np.ndarray) -> dict[str, np.ndarray]:
         "as run": np.hypot(x, z),
         "x = 0 (along the spine only)": np.abs(z),
         "z = 0 (across the spine only)": np.abs(x),
-        "every episode at its level": np.hypot(x, np.where(level_miss, 0.0, z)),
+        "level misses at z = 0": np.hypot(x, np.where(level_miss, 0.0, z)),
     }
 
 

@@ -83,3 +83,21 @@ def test_stacked_surfaces_answer_per_patient():
     assert torch.allclose(rot[0, :, 2], torch.tensor([0.0, 1.0, 0.0]), atol=1e-6)
     assert rot[1, 0, 2] < -0.09  # sloped patient's normal leans toward -x
     assert both.z_range(1) == (-0.02, -0.02 + 0.002 * 19)
+
+
+def test_aim_finds_the_skin_point_whose_normal_passes_through_the_target():
+    """On a tilted plane y = tan(t) x the inward normal is n = (-sin t, cos t, 0) everywhere,
+    so the beam reaching a target T at depth d starts at T - d n on the plane: known exactly."""
+    t = 0.3
+    xs = np.linspace(-0.1, 0.1, 101)
+    zs = np.linspace(-0.1, 0.1, 101)
+    h = np.tan(t) * xs[:, None] + 0 * zs[None, :]
+    skin = SkinSurface(h, xs[0], zs[0], xs[1] - xs[0], zs[1] - zs[0], normal_sigma=0.004)
+    target = torch.tensor([[0.01, 0.08, -0.02], [-0.02, 0.05, 0.03]], dtype=torch.float64)
+    x, z = skin.aim(target)
+    assert skin.beam_miss(x, z, target).max() < 1e-5
+    n = torch.tensor([-math.sin(t), math.cos(t), 0.0], dtype=torch.float64)
+    # the skin point s = T - d n lies on the plane: (T_y - d cos t) = tan t (T_x + d sin t)
+    d = (target[:, 1] - math.tan(t) * target[:, 0]) / (math.cos(t) + math.tan(t) * math.sin(t))
+    expect = target - d[:, None] * n
+    assert torch.allclose(x, expect[:, 0], atol=1e-5) and torch.allclose(z, expect[:, 2], atol=1e-5)

@@ -1,4 +1,5 @@
 import math
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -404,3 +405,65 @@ def test_measured_command_is_computed_once_per_pose_and_stays_fresh(monkeypatch)
     # the caller owns what it gets
     sc.measured_command()[0].zero_()
     assert torch.equal(sc.measured_command()[0], fresh()[0])
+
+
+# ----------------------------------------------------------------- the goal {G}
+
+
+def _beam_miss_mm(env) -> np.ndarray:
+    """How far (mm) each env's goal beam (from {G}'s origin along its z axis) passes from the
+    target vertebra's body centroid."""
+    c = env.scene.target_centres.double()
+    g, beam = env.goal_pos.double(), env.goal_rot[:, :, 2].double()
+    d = c - g
+    return ((d - (d * beam).sum(-1, keepdim=True) * beam).norm(dim=-1) * 1e3).numpy()
+
+
+@pytest.fixture(scope="module")
+def rolled_phantoms(tmp_path_factory):
+    """Folders of seed-0 phantoms at 2 mm: rolled on the table with the spine (no rotation
+    within the trunk), and rolled with the spine also rotated in the trunk and the vertebrae
+    axially rotated."""
+    from sonogym.anatomy import PhantomParams, make_phantom
+    from sonogym.anatomy.totalseg import save_totalsegmentator
+
+    out = {}
+    for name, kw in {
+        "rolled": dict(trunk_roll=0.12, spine_rotation=0.0, axial_rotation=0.0),
+        "rolled-rotated": dict(trunk_roll=0.12, spine_rotation=0.08, axial_rotation=0.05),
+    }.items():
+        p = make_phantom(0, PhantomParams(spacing=0.002, **kw))
+        folder = save_totalsegmentator(p, tmp_path_factory.mktemp(name))
+        out[name] = (str(folder), p.meta["vertebrae"]["L4"])
+    return out
+
+
+@pytest.mark.parametrize("name", ["rolled", "rolled-rotated"])
+def test_goal_beam_passes_through_the_l4_centroid(rolled_phantoms, name):
+    folder, _ = rolled_phantoms[name]
+    env = _env(1, patients=(folder,), obs_mode="state", robot=None)
+    assert _beam_miss_mm(env).max() < 1.0
+    # the goal is the transverse pose on the skin
+    skin_y = env.scene.skin.height(env.goal_pos[:, 0], env.goal_pos[:, 2], env.scene.patient_index)
+    assert torch.allclose(env.goal_pos[:, 1], skin_y, atol=1e-6)
+    assert torch.allclose(env.goal_cmd[:, 2], torch.tensor(math.pi))
+
+
+def test_goal_lies_on_the_midsagittal_plane_of_a_spine_rolled_with_the_trunk(rolled_phantoms):
+    """A patient rolled on the table (spine and trunk together): {G} lies on L4's midsagittal
+    plane (the generator's own frame), where the old goal straight above the centroid lay
+    ~12 mm off it."""
+    folder, truth = rolled_phantoms["rolled"]
+    env = _env(1, patients=(folder,), obs_mode="state", robot=None)
+    lateral = torch.tensor(truth["rotation"], dtype=torch.float64)[:, 0]
+    centre = torch.tensor(truth["centre_m"], dtype=torch.float64)
+    off = float((env.goal_pos[0].double() - centre) @ lateral) * 1e3
+    assert abs(off) < 1.0
+    above = env.scene.skin.point(centre[0:1], centre[2:3]).double()[0]
+    assert abs(float((above - centre) @ lateral) * 1e3) > 5.0  # the old goal: off the plane
+
+
+def test_goal_beam_passes_through_the_real_l4_centroid():
+    subject = str(Path(__file__).resolve().parents[1] / "data" / "totalsegmentator_example")
+    env = _env(2, patients=(subject, 0), obs_mode="state", robot=None)
+    assert _beam_miss_mm(env).max() < 1.0

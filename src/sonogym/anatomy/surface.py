@@ -193,6 +193,58 @@ class SkinSurface:
         """(..., 3) skin points at (x, z)."""
         return torch.stack([x, self.height(x, z, patient), z], -1)
 
+    def aim(
+        self,
+        target: torch.Tensor,
+        patient: torch.Tensor | None = None,
+        iterations: int = 12,
+        step: float = 5e-4,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x, z) of the skin point whose beam, the inward normal, passes through ``target``
+        (..., 3) m in {P}: the probe position that images the target on the beam's axis at any
+        yaw. Newton's method on the beam's miss of the target in x and z (the 2 x 2 Jacobian by
+        central differences of ``step`` m), started straight above the target; float64.
+
+        The miss left (the target's distance from the beam) is ``beam_miss``; a target the skin
+        has no such point for (it lies outside the grid's reach) ends at the grid's edge."""
+        target = target.to(torch.float64)
+        x, z = target[..., 0].clone(), target[..., 2].clone()
+
+        def miss(dx: float, dz: float) -> torch.Tensor:
+            return self._miss(x + dx, z + dz, target, patient)
+
+        for _ in range(iterations):
+            r = miss(0.0, 0.0)
+            jx = (miss(step, 0.0) - miss(-step, 0.0)) / (2 * step)
+            jz = (miss(0.0, step) - miss(0.0, -step)) / (2 * step)
+            jac = torch.stack([jx, jz], -1)  # (..., 2 residuals, 2 unknowns)
+            d = torch.linalg.solve(jac, r.unsqueeze(-1)).squeeze(-1)
+            x, z = x - d[..., 0], z - d[..., 1]
+        return x, z
+
+    def beam_miss(
+        self,
+        x: torch.Tensor,
+        z: torch.Tensor,
+        target: torch.Tensor,
+        patient: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """(...) m: the distance of ``target`` (..., 3) from the beam (the inward normal's
+        line) at skin point (x, z)."""
+        s = self.point(x, z, patient).to(torch.float64)
+        n = self.normal(x, z, patient).to(torch.float64)
+        d = target.to(torch.float64) - s
+        return (d - (d * n).sum(-1, keepdim=True) * n).norm(dim=-1)
+
+    def _miss(self, x, z, target, patient) -> torch.Tensor:
+        """(..., 2): the x and z components of the target's offset from its nearest point on
+        the beam at (x, z) (zero where the beam passes through it)."""
+        s = self.point(x, z, patient).to(torch.float64)
+        n = self.normal(x, z, patient).to(torch.float64)
+        d = s - target
+        r = d - (d * n).sum(-1, keepdim=True) * n
+        return r[..., [0, 2]]
+
     def surface_pose(
         self,
         x: torch.Tensor,

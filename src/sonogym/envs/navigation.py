@@ -1,9 +1,10 @@
 """Task 1, ultrasound navigation: bring the probe to the transverse view above L4.
 
 **Description.** A probe held on the patient's back by a robot arm starts at a random pose and
-must reach the goal frame {G}: the probe pose on the skin above the target vertebra's body
-centroid with a transverse image plane (yaw alpha_G = pi). The arm keeps the probe on the skin
-with its beam along the inward normal; the agent plans the 3 tangential DoF.
+must reach the goal frame {G}: the transverse view (yaw alpha_G = pi) centred on the target
+vertebra, the probe on the skin point whose beam (the skin's smoothed inward normal) passes
+through the vertebra's body centroid (``goal_commands``; task version 2). The arm keeps the
+probe on the skin with its beam along the inward normal; the agent plans the 3 tangential DoF.
 
 **Observations.** ``obs_mode="us"``: the ultrasound image, (1, 200, 150) float32 in [0, 1] (depth
 rows from the probe face, lateral columns). ``"ct"``: the CT slice mapped from [-1000, 2000] HU
@@ -153,6 +154,18 @@ def navigation_reward(
     return w1 * dp + q_before.norm(dim=-1) - q_after.norm(dim=-1)
 
 
+def goal_commands(scene: ProbeScene, goal_yaw: float) -> torch.Tensor:
+    """(N, 3) {G}'s surface command (x, z, alpha_G) per env: the skin point whose beam (the
+    smoothed inward normal) passes through the target vertebra's body centroid
+    (``SkinSurface.aim``), so the transverse image at {G} holds the centroid on its centre
+    line, at the centroid's level, whatever the trunk's roll or the spine's lean."""
+    centres = scene.target_centres_p  # (P, 3) float64
+    pid = torch.arange(len(centres), device=centres.device)
+    x, z = scene.skin.aim(centres, pid)
+    per_patient = torch.stack([x, z, torch.full_like(x, goal_yaw)], -1)
+    return per_patient[scene.patient_index].float()
+
+
 def goal_in_probe(state: torch.Tensor) -> torch.Tensor:
     """The goal's origin seen from the probe, (N, 3) metres in {U}, from ``state`` (N, 6), the
     pose of {U} in {G}: the inverse pose's position, -R_GU^T p."""
@@ -198,14 +211,11 @@ class NavigationEnv(TaskEnv):
         cfg = self.cfg
         # navigation reads the volumes only through the slicer: patients load one at a time
         self.scene = ProbeScene(
-            cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False
-        )
+            cfg, num_envs, self.device, render=cfg.obs_mode != "state", keep_volumes=False,
+            aimed=True,
+        )  # fmt: skip
         n = num_envs
-        # Goal command per env: above the target vertebra's body centroid, transverse.
-        centres = self.scene.target_centres  # (N, 3)
-        self.goal_cmd = torch.stack(
-            [centres[:, 0], centres[:, 2], torch.full((n,), cfg.goal_yaw, device=self.device)], -1
-        )
+        self.goal_cmd = goal_commands(self.scene, cfg.goal_yaw)
         self.goal_pos, self.goal_rot = self.scene.surface_pose(self.goal_cmd)
         self.command = self.goal_cmd.clone()
         self.action_bound = bound = self._set_action_scaling(cfg.action_scale, cfg.action_limit)
@@ -392,6 +402,8 @@ def expert(env: NavigationEnv, info: dict) -> torch.Tensor:
 SPEC = TaskSpec(
     name="navigation",
     env_id="SonoGym/Navigation-v0",
+    # 2: {G} where the beam passes through the target's body centroid (1: straight above it)
+    version=2,
     env_cls=NavigationEnv,
     config_cls=NavigationConfig,
     action_names=("dx", "dy", "dalpha"),

@@ -31,6 +31,8 @@ class ProbeScene(PatientScene):
         num_envs, device, keep_volumes: see ``PatientScene``.
         render: build the slicer and simulator now (else on first ``observe``).
         probe: the imaging geometry (default: the paper's 2-D linear probe).
+        aimed: the workspace square is centred on the skin point whose beam passes through
+            the target's centre (navigation's goal) instead of the point above it.
     """
 
     def __init__(
@@ -41,11 +43,12 @@ class ProbeScene(PatientScene):
         render: bool = True,
         keep_volumes: bool = True,
         probe: ProbeGeometry | None = None,
+        aimed: bool = False,
     ) -> None:
         reach = None
         if cfg.crop_to_reach:
             tilt = getattr(cfg, "tilt_limit", 0.0) + ARM_TILT_MARGIN
-            reach = ImagingReach(cfg.workspace_half_extent, tilt)
+            reach = ImagingReach(cfg.workspace_half_extent, tilt, aimed)
         probe = probe or ProbeGeometry.linear_2d()
         super().__init__(cfg, num_envs, device, probe, reach=reach, keep_volumes=keep_volumes)
         self.robot = robot = cfg.robot

@@ -41,12 +41,14 @@ ARM_TILT_MARGIN = 0.1
 
 @dataclass(frozen=True)
 class ImagingReach:
-    """Where a task's probe can be: its face on the skin within ``half_extent`` (m) of the
-    target vertebra's centre in x and z, its beam within ``tilt`` (rad) of the skin's inward
-    normal there, any yaw."""
+    """Where a task's probe can be: its face on the skin within ``half_extent`` (m) in x and z
+    of the point above the target vertebra's centre (with ``aimed``: of the skin point whose
+    beam passes through that centre, ``SkinSurface.aim``), its beam within ``tilt`` (rad) of
+    the skin's inward normal there, any yaw."""
 
     half_extent: float
     tilt: float = 0.0
+    aimed: bool = False
 
 
 def imaging_reach_boxes(
@@ -67,7 +69,12 @@ def imaging_reach_boxes(
     r = float(np.hypot(probe.width / 2, probe.elevation_px * probe.elevation_spacing / 2))
     boxes = []
     for p, c in enumerate(np.asarray(centres, dtype=np.float64)):
-        gx, gz = np.meshgrid(c[0] + u, c[2] + u, indexing="ij")
+        cx, cz = c[0], c[2]
+        if reach.aimed:
+            target = torch.as_tensor(c, dtype=torch.float64, device=skin.device)
+            ax, az = skin.aim(target, torch.tensor(p, device=skin.device))
+            cx, cz = float(ax), float(az)
+        gx, gz = np.meshgrid(cx + u, cz + u, indexing="ij")
         x = torch.as_tensor(gx.ravel(), dtype=torch.float32)
         z = torch.as_tensor(gz.ravel(), dtype=torch.float32)
         idx = torch.full_like(x, p, dtype=torch.long)

@@ -302,6 +302,10 @@ class TaskSpec:
     # per obs_mode, the version of what the observation means (absent: 1); bumped when it
     # changes, so a policy trained on an older one is refused instead of silently misread
     obs_versions: dict[str, int] = field(default_factory=dict)
+    #: the task definition's version (reward, goal, regions, start distribution, episode
+    #: length): bumped whenever one of them changes, so results record which task they measure
+    #: (``sonogym.envs.identity``)
+    version: int = 1
 
     @property
     def default_obs_mode(self) -> str | None:

@@ -62,6 +62,7 @@ from sonogym.agents.configs import (
     use_multi_tensor_optimizers,
 )
 from sonogym.agents.networks import log_std_ceiling, make_models
+from sonogym.envs.identity import identity, stamp
 from sonogym.envs.registry import check_task_name, get_task, make_vec
 from sonogym.progress import progress_bar
 from sonogym.runs import (
@@ -285,6 +286,15 @@ def _run_training(
         load_agent(agent, start_ckpt.path)
     elif cfg.init_from is not None:
         warm_start(agent, cfg.init_from, adapter)
+    made_with = identity(task, cfg.rl.env_kwargs)
+    if resume:
+        before = read_json(out / "config.json", "`sonogym train` run folder").get("identity")
+        if before != made_with:
+            was = stamp(before) if before else "none recorded: an older sonogym"
+            raise ValueError(
+                f"cannot resume {out}: it was trained under another benchmark identity ({was}; "
+                f"now {stamp(made_with)}); train it anew with --force"
+            )
     resolved = {
         **cfg.to_dict(),
         **_interface(adapter),
@@ -292,6 +302,7 @@ def _run_training(
         "write_interval": write_interval,
         "resumed_from": start,
         "obs_version": get_task(task).obs_version(cfg.rl.env_kwargs.get("obs_mode")),
+        "identity": made_with,
         "versions": _versions(),
     }
     atomic_write_json(out / "config.json", to_jsonable(resolved))

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sonogym.envs.identity import IDENTITY_FILE, check_one_identity, stamp
 from sonogym.evaluation.trained import load_run
-from sonogym.runs import atomic_write_text
+from sonogym.runs import atomic_write_json, atomic_write_text
 
 DEFAULT_METRIC = "Episode / return"
 #: Plot labels of the RL algorithms (paper's names); imitation policies' labels are in their
@@ -244,11 +245,21 @@ def plot_curves(
     import matplotlib.pyplot as plt
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     groups = group_runs(runs)
     tasks = sorted({t for t, _, _ in groups})
+    # one identity per task's figures, checked before anything is written
+    made_with = {
+        task: check_one_identity(
+            {r.name: run_config(r).get("identity") for (t, _, _), rs in groups.items()
+             if t == task for r in rs}
+        )
+        for task in tasks
+    }  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / IDENTITY_FILE, made_with)
     written: list[Path] = []
     md = [f"# Learning curves\n\nmean ± 1σ over seeds; metrics {', '.join(metrics)}"]
+    md += [stamp(made_with[task]) for task in tasks]
     for task in tasks:
         for metric in metrics:
             curves = []
@@ -290,7 +301,8 @@ def plot_curves(
             ax.set_ylabel(metric)
             ax.set_title(f"{task}: {metric}", fontsize=10)
             ax.legend(fontsize=8)
-            fig.text(0.01, 0.005, f"runs: {source}", fontsize=5, wrap=True)
+            fig.text(0.01, 0.005, f"{stamp(made_with[task])}; runs: {source}", fontsize=5,
+                     wrap=True)  # fmt: skip
             fig.tight_layout(rect=(0, 0.04, 1, 1))
             png = out / f"{name}.png"
             fig.savefig(png, dpi=100, metadata={"Software": None})

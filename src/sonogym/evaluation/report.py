@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sonogym.envs.identity import IDENTITY_FILE, check_one_identity, stamp
 from sonogym.envs.registry import get_task
 from sonogym.envs.spec import Metric
 from sonogym.evaluation.curves import (
@@ -44,7 +45,7 @@ from sonogym.evaluation.curves import (
 )
 from sonogym.evaluation.episodes import EpisodeLog, run_logs
 from sonogym.evaluation.protocols import simulator_group
-from sonogym.runs import atomic_write_text
+from sonogym.runs import atomic_write_json, atomic_write_text
 
 RETURN = Metric("return", "return", "", better="higher")
 
@@ -377,6 +378,15 @@ def reconstruction_trajectories(
 # ----------------------------------------------------------------------------- report
 
 
+def results_identity(runs: list[Path], logs: list[tuple[Path, EpisodeLog]]) -> dict:
+    """The one benchmark identity of ``runs`` (as trained) and their episode ``logs`` (as
+    evaluated); ``IdentityMismatch`` names the run or evaluation that differs, and in what."""
+    named = {f"{r.name} (training)": run_config(r).get("identity") for r in runs}
+    for r, lg in logs:
+        named[f"{r.name} (evaluation {lg.meta.get('protocol')})"] = lg.meta.get("identity")
+    return check_one_identity(named)
+
+
 def build_report(
     task: str,
     runs: list[str | Path],
@@ -393,10 +403,12 @@ def build_report(
     if not task_runs:
         raise FileNotFoundError(f"no {task} runs among {[str(r) for r in all_runs]}")
     logs = [(r, lg) for r in task_runs for lg in run_logs(r)]
+    made_with = results_identity(task_runs, logs)
     out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / IDENTITY_FILE, made_with)
     cells = collect_cells(task, logs)
     cmd = command or f"sonogym report --task {task} --runs " + " ".join(str(r) for r in runs)
-    md = [f"# SonoGym report: {task}\n", f"Made by: `{cmd}`\n"]
+    md = [f"# SonoGym report: {task}\n", f"Made by: `{cmd}`\n", f"{stamp(made_with)}\n"]
     names = [f"{r.name} ({run_config(r)['algo']}, seed {run_config(r)['seed']})" for r in task_runs]
     md.append("Runs: " + ", ".join(names) + "\n")
     if not logs:
@@ -407,7 +419,7 @@ def build_report(
 
     if task == "surgery":
         t_md, t_csv, used = table1(cells)
-        atomic_write_text(out / "table1.md", t_md)
+        atomic_write_text(out / "table1.md", f"{stamp(made_with)}\n\n{t_md}")
         atomic_write_text(out / "table1.csv", t_csv)
         md += [
             "## Table 1: surgery (mean ± std over episodes)\n",

@@ -82,6 +82,7 @@ def evaluate_run(
     ``trajectories-<protocol>.png`` into ``out`` (default: the run folder), which must be
     writable: checked before the episodes run.
     """
+    from sonogym.envs.identity import identity
     from sonogym.envs.registry import get_task
     from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
@@ -127,6 +128,11 @@ def evaluate_run(
     }
     spread = {c: distribution(trained.task, ep["metrics"]) for c, ep in episodes.items()}
     track = get_task(trained.task).track
+    test_env = trained.evaluation_env_kwargs(overrides)
+    made_with = {
+        "identity": identity(trained.task, test_env),  # what the episodes ran on
+        "train_identity": trained.config.get("identity"),  # what the policy learned on
+    }
     meta = {
         "task": trained.task,
         "algo": trained.algo,
@@ -140,7 +146,8 @@ def evaluate_run(
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
         "train_env": to_jsonable(trained.env_kwargs),
-        "test_env": to_jsonable(trained.evaluation_env_kwargs(overrides)),
+        "test_env": to_jsonable(test_env),
+        **made_with,
         "track_columns": list(track.columns),
         "track_units": list(track.units),
     }
@@ -163,6 +170,7 @@ def evaluate_run(
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
         "env_overrides": to_jsonable(overrides),
+        **made_with,
         "results": results,
         "distribution": spread,
     }

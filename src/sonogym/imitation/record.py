@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from sonogym.envs.identity import identity, stamp
 from sonogym.envs.policy import ExpertPolicy
 from sonogym.envs.registry import get_task, make_vec
 from sonogym.envs.rollout import rollout
@@ -45,6 +46,8 @@ from sonogym.runs import (
 )
 
 META = "meta/sonogym.json"
+#: info.json's field with the benchmark identity the dataset was recorded under
+IDENTITY_INFO_KEY = "sonogym_identity"
 #: env options an evaluation of a policy trained on the dataset reuses (what it imaged); the
 #: start randomisation of data collection is not among them
 EVAL_ENV_KEYS = ("patients", "simulator", "learned_nets", "phantom_spacing", "side")
@@ -188,6 +191,13 @@ def _record(task, out, episodes, recipe, envs, env_kwargs, seed, resume, progres
         raise ValueError(f"episodes must be a positive integer, got {episodes}")
     meta["episodes_wanted"] = episodes
     meta["eval_env_kwargs"] = to_jsonable({k: v for k, v in kw.items() if k in EVAL_ENV_KEYS})
+    made_with = identity(task, kw)
+    if resume and meta.get("identity") not in (None, made_with):
+        raise ValueError(
+            f"cannot resume {out}: it was recorded under another benchmark identity "
+            f"({stamp(meta['identity'])}; now {stamp(made_with)}); record it anew with --force"
+        )
+    meta["identity"] = made_with
 
     env = make_vec(task, envs, **kw)
     a_dim = env.single_action_space.shape[0]
@@ -196,6 +206,7 @@ def _record(task, out, episodes, recipe, envs, env_kwargs, seed, resume, progres
     atomic_write_json(out / META, meta)
     writer = DatasetWriter(out, spec.fps, info_features(task, a_dim), spec.instruction,
                            spec.robot_type, resume=resume)  # fmt: skip
+    writer.set_info(IDENTITY_INFO_KEY, made_with)
     done_eps = writer.num_episodes
     if done_eps >= episodes:
         log(f"{out} already holds {done_eps} >= {episodes} episodes; nothing to record")

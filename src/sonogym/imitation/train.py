@@ -260,6 +260,8 @@ def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
         "algo": spec.algo,
         "seed": cfg.seed,
         "env_kwargs": recording.get("eval_env_kwargs", {}),
+        # the dataset's; None for a dataset recorded elsewhere or by an older sonogym
+        "identity": recording.get("identity"),
         "policy": cfg.policy,
         "policy_config": pcfg.to_dict(),
         "train": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "policy_config"},

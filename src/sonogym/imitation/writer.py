@@ -250,6 +250,14 @@ class DatasetWriter:
 
     # --- public -----------------------------------------------------------------------------
 
+    def set_info(self, key: str, value: Any) -> None:
+        """Add a field of the writer's own (LeRobot readers ignore unknown ones) to info.json,
+        written now and kept with every commit."""
+        if key in fmt.new_info(1, {}, None, 1):
+            raise ValueError(f"{key!r} is one of LeRobot's info.json fields")
+        self.info[key] = value
+        self._write_info(self.info)
+
     @property
     def num_episodes(self) -> int:
         return int(self.info["total_episodes"])

@@ -186,6 +186,9 @@ class PhysicalModel:
 
 #: The model-based ultrasound models by name.
 US_MODELS: dict[str, type] = {"physical": PhysicalModel, "sonogym": SonoGymModel}
+#: Each model's version: bumped whenever its images for the same slices change, so that results
+#: record which images they were measured on (``sonogym.envs.identity``).
+MODEL_VERSIONS: dict[str, int] = {"physical": 1, "sonogym": 1}
 
 
 def _renamed_preset(owner: str, model, preset, default=None):

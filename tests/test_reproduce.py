@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from sonogym import reproduce as R
 from sonogym.agents.configs import task_config
 from sonogym.cli import app
+from sonogym.envs.identity import identity
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results.md"
 
@@ -25,7 +26,7 @@ def _documented() -> dict[str, list[tuple[str, ...]]]:
     document order."""
     found: dict[str, list[tuple[str, ...]]] = {}
     for block in re.findall(r"```bash\n(.*?)```", RESULTS.read_text(), re.S):
-        head = re.match(r"# sonogym reproduce (\w+)\n", block)
+        head = re.match(r"# sonogym reproduce ([\w-]+)\n", block)
         if not head:
             continue
         for line in block[head.end() :].replace("\\\n", " ").splitlines():
@@ -52,6 +53,21 @@ def _touch(path: Path, text: str = "") -> None:
     path.write_text(text)
 
 
+_ENV = {"patients": [0], "phantom_spacing": 0.002}
+_CURRENT = identity("reconstruction", {"patients": (0,), "phantom_spacing": 0.002})
+#: an evaluation table of today's identity, of a run trained under it
+_TABLE = json.dumps(
+    {"task": "reconstruction", "test_env": _ENV, "identity": _CURRENT, "train_identity": _CURRENT}
+)
+
+
+def _run_config(folder: Path, made_with: dict | None) -> None:
+    cfg = {"task": "reconstruction", "task_config": {"env_kwargs": _ENV}}
+    if made_with is not None:
+        cfg["identity"] = made_with
+    _touch(folder / "config.json", json.dumps(cfg))
+
+
 def test_done_commands_are_skipped_partial_ones_resume_and_reports_follow(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     train, ev, report = R.recipe("reconstruction")
@@ -62,12 +78,15 @@ def test_done_commands_are_skipped_partial_ones_resume_and_reports_follow(tmp_pa
     assert plan[0][0].argv[-1] == "--resume" and plan[0][1] == "partial"
     assert plan[2][1] == "todo"  # the stored report predates runs still to make
     _touch(tmp_path / "runs/recon-ppo-small-s0/checkpoints/agent_4000.pt")  # the final step
-    _touch(tmp_path / "runs/recon-ppo-small-s0/eval.json")
+    _run_config(tmp_path / "runs/recon-ppo-small-s0", _CURRENT)
+    _touch(tmp_path / "runs/recon-ppo-small-s0/eval.json", _TABLE)
+    _touch(tmp_path / "docs/results/reconstruction/identity.json", "{}")
     assert [st for _, st in R.to_run([train, ev, report])] == ["done", "done", "done"]
 
     named = R._step("sonogym eval --run runs/x --protocol idt --name idt-zero")
     assert R.status(named) == "todo"
-    _touch(tmp_path / "runs/x/eval-idt-zero.json")
+    _run_config(tmp_path / "runs/x", _CURRENT)
+    _touch(tmp_path / "runs/x/eval-idt-zero.json", _TABLE)
     assert R.status(named) == "done"
 
     record = R._step("sonogym record --task surgery --episodes 150 --out runs/ds")
@@ -109,3 +128,43 @@ def test_paper_preset_trains_with_the_papers_schedule_in_its_own_folders():
     assert train.cpu_min == pytest.approx(
         cpu.cpu_min * cfg.timesteps * cfg.num_envs / (9024 * 64), rel=1e-3
     )
+
+
+def test_outputs_of_another_identity_are_made_anew(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    train, ev, report = R.recipe("reconstruction")
+    run = tmp_path / "runs/recon-ppo-small-s0"
+    current, table = _CURRENT, json.loads(_TABLE)
+    _run_config(run, current)
+    _touch(run / "checkpoints/agent_4000.pt")
+    _touch(run / "eval.json", _TABLE)
+    _touch(tmp_path / "docs/results/reconstruction/report.md")
+    _touch(tmp_path / "docs/results/reconstruction/identity.json", "{}")
+    assert [st for _, st in R.to_run([train, ev, report])] == ["done", "done", "done"]
+
+    # the same run trained under an older task definition: trained anew, then evaluated and
+    # reported anew
+    _run_config(run, {**current, "task_version": current["task_version"] - 1})
+    plan = R.to_run([train, ev, report])
+    assert [st for _, st in plan] == ["stale", "todo", "todo"]
+    assert plan[0][0].argv[-1] == "--force"
+    _run_config(run, None)  # made before identities were recorded
+    assert R.status(train) == "stale"
+
+    # an evaluation of today's run made under another identity, and a report without one
+    _run_config(run, current)
+    _touch(run / "eval.json", json.dumps({**table, "identity": {**current, "task_version": 0}}))
+    (tmp_path / "docs/results/reconstruction/identity.json").unlink()
+    assert [st for _, st in R.to_run([train, ev, report])] == ["done", "stale", "todo"]
+
+
+def test_reproduce_all_runs_every_recipe_in_order(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    lines = []
+    R.reproduce("all", dry_run=True, log=lines.append)
+    assert lines[0].startswith(f"all {len(R.RECIPES)} results")
+    heads = [ln.split(",")[0] for ln in lines if not ln.startswith(("  ", "all "))]
+    assert heads == list(R.RECIPES)
+    assert list(R.RECIPES)[-2:] == ["table1-lb", "navigation-lb"]
+    res = CliRunner().invoke(app, ["reproduce", "all", "--dry-run"])
+    assert res.exit_code == 0 and "navigation-lb" in res.output

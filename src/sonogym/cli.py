@@ -798,7 +798,7 @@ def reproduce(
         str,
         typer.Argument(
             help="The published result: table1, navigation, reconstruction, population, "
-            "imitation or curves."
+            "imitation, curves, table1-lb, navigation-lb, or all of them in that order."
         ),
     ],
     preset: Annotated[

@@ -33,6 +33,7 @@ import subprocess
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 #: The presets a recipe can be run with.
 PRESETS = ("cpu", "paper")
@@ -203,10 +204,55 @@ _RECIPES = (
             "--metric 'Episode / position_error_mm'",
         ),
     ),
+    Recipe(
+        "table1-lb",
+        "Table 1: surgery (LB rows: trained on learned nets 0-3, ODT on net 4)",
+        (
+            "sonogym train --task surgery --algo ppo-sf --obs-downsample 2 --steps 51968 --seed 0 "
+            "--net small --env-option unsafe_distance_penalty=0 --protocol odt-sim "
+            "--out runs/surg-img-lb-s0",
+            "sonogym eval --run runs/surg-img-lb-s0 --protocol idt --envs 50",
+            "sonogym eval --run runs/surg-img-lb-s0 --protocol odt-sim --envs 50",
+            "sonogym record --task surgery --recipe lb-4-nets --episodes 150 --envs 16 "
+            "--out runs/ds-surg-lb",
+            "sonogym il-train --policy act --data runs/ds-surg-lb --steps 30000 --threads 1 "
+            "--out runs/il-surg-act-lb",
+            "sonogym eval --run runs/il-surg-act-lb --envs 50",
+            "sonogym eval --run runs/il-surg-act-lb --protocol odt-sim --envs 50",
+            "sonogym report --task surgery --runs runs/surg-state-dist-s0 runs/surg-state-dist-s1 "
+            "runs/surg-state-dist-s2 runs/surg-img-w5-s0 runs/il-surg-act runs/surg-img-lb-s0 "
+            "runs/il-surg-act-lb --out docs/results/surgery-table1",
+        ),
+    ),
+    Recipe(
+        "navigation-lb",
+        "Navigation on the learned simulator (PPO, ACT, Diffusion Policy; ODT on net 4)",
+        (
+            f"sonogym train --task navigation --algo ppo {_NAV_SMALL} --steps 4512 "
+            "--protocol odt-sim --out runs/nav-ppo-small-lb-s0",
+            "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol idt",
+            "sonogym eval --run runs/nav-ppo-small-lb-s0 --protocol odt-sim",
+            "sonogym record --task navigation --recipe lb-4-nets --episodes 1000 --envs 16 "
+            "--out runs/ds-nav-lb-1000",
+            "sonogym il-train --policy act --data runs/ds-nav-lb-1000 --image-size 100x75 "
+            "--steps 128000 --threads 1 --out runs/il-nav-act-lb-1000",
+            "sonogym il-train --policy diffusion --data runs/ds-nav-lb-1000 --image-size 100x75 "
+            "--steps 80000 --threads 1 --out runs/il-nav-dp-lb-1000",
+            "sonogym eval --run runs/il-nav-act-lb-1000 --protocol idt",
+            "sonogym eval --run runs/il-nav-act-lb-1000 --protocol odt-sim",
+            "sonogym eval --run runs/il-nav-dp-lb-1000 --protocol idt",
+            "sonogym eval --run runs/il-nav-dp-lb-1000 --protocol odt-sim",
+            "sonogym report --task navigation --runs runs/nav-ppo-small-lb-s0 "
+            "runs/il-nav-act-lb-1000 runs/il-nav-dp-lb-1000 --out docs/results/navigation-lb "
+            "--no-curves",
+        ),
+    ),
 )
 
 #: Every published result's recipe by name (docs/results.md prints the same commands).
 RECIPES: dict[str, Recipe] = {r.name: r for r in _RECIPES}
+#: ``sonogym reproduce all``: every recipe, in this order (model-based results first).
+ALL = "all"
 
 
 #: CPU minutes of each run when its published figure was made (docs/results.md); evaluations,
@@ -219,12 +265,22 @@ CPU_MINUTES: dict[str, float] = {
     "runs/nav-ppo-small-s0": 45.0,
     "runs/nav-ppo-small-lb-s0": 27.0,
     "runs/recon-ppo-small-s0": 27.0,
-    "runs/nav-pop32-v2-s0": 178.6,
+    # the shipped navigation policy's recipe: ~5 env steps/s at 64 envs, one thread
+    "runs/nav-pop64-scan-s0": 78.0,
+    "runs/nav-pop64-lobes-ft-s0": 21.0,
     "runs/sweep-nav-ppo": 15.0,
     "runs/sweep-nav-a2c": 5.0,
     "runs/ds-nav-mb-1000": 19.4,
     "runs/il-nav-act-1000": 82.9,
     "runs/il-nav-dp-1000": 79.5,
+    # learned-simulator results: estimates (the model-based figure over the learned
+    # simulator's env speed, ~0.5x), until measured
+    "runs/surg-img-lb-s0": 200.0,
+    "runs/ds-surg-lb": 3.0,
+    "runs/il-surg-act-lb": 27.0,
+    "runs/ds-nav-lb-1000": 40.0,
+    "runs/il-nav-act-lb-1000": 83.0,
+    "runs/il-nav-dp-lb-1000": 80.0,
 }
 
 
@@ -310,8 +366,75 @@ def _records(path: Path) -> int:
 _FINAL_FILE = {"report": "report.md", "plot": "curves.md", "sweep": "sweep.md"}
 
 
+def _read(path: Path) -> dict:
+    """A JSON file's object, {} when absent or unreadable (a status check reads leniently)."""
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return obj if isinstance(obj, dict) else {}
+
+
+def _today(task: Any, env_kwargs: Any) -> dict | None:
+    """The identity ``task``'s env with ``env_kwargs`` (as a JSON file holds them) has today;
+    None where they do not describe one (an unknown task, an option no longer accepted)."""
+    from sonogym.envs.identity import identity
+    from sonogym.runs import lists_to_tuples
+
+    try:
+        return identity(str(task), lists_to_tuples(env_kwargs or {}))
+    except (ValueError, TypeError, KeyError, OSError):
+        return None
+
+
+def _recording_identity(dataset: Path) -> dict | None:
+    """The identity a dataset would be recorded under today, from how it was recorded."""
+    meta = _read(dataset / "meta" / "sonogym.json")
+    return _today(meta.get("task"), meta.get("env_kwargs"))
+
+
+def made_under_another_identity(step: Step) -> bool:
+    """Whether the output ``step`` left was made under a benchmark identity other than today's
+    for the same options (or records none: an older sonogym). An absent output is not."""
+    from sonogym.envs.identity import IDENTITY_FILE
+
+    def differs(recorded, today) -> bool:
+        return recorded is None or recorded != today
+
+    cmd, out = step.argv[0], _out(step)
+    if cmd == "train" and (out / "config.json").is_file():
+        cfg = _read(out / "config.json")
+        env = cfg.get("task_config", {}).get("env_kwargs")
+        return differs(cfg.get("identity"), _today(cfg.get("task"), env))
+    if cmd == "record" and (out / "meta" / "sonogym.json").is_file():
+        meta = _read(out / "meta" / "sonogym.json")
+        return differs(meta.get("identity"), _recording_identity(out))
+    if cmd == "il-train" and (out / "config.json").is_file():
+        data = Path(step.option("--data") or "")
+        return differs(_read(out / "config.json").get("identity"), _recording_identity(data))
+    if cmd == "eval" and _eval_table(step).is_file():
+        table = _read(_eval_table(step))
+        run = _read(out / "config.json")
+        return differs(
+            table.get("identity"), _today(table.get("task"), table.get("test_env"))
+        ) or differs(table.get("train_identity"), run.get("identity"))
+    if cmd == "sweep" and (out / _FINAL_FILE["sweep"]).is_file():
+        runs = [c.parent for c in (out / "runs").glob("*/config.json")]
+        return not runs or any(made_under_another_identity(_train_step(r)) for r in runs)
+    if cmd in ("report", "plot") and (out / _FINAL_FILE[cmd]).is_file():
+        return not (out / IDENTITY_FILE).is_file()
+    return False
+
+
+def _train_step(run: Path) -> Step:
+    return Step(("train", "--out", str(run)), 0.0)
+
+
 def status(step: Step) -> str:
-    """ "done", "partial" (an output to continue with ``--resume``) or "todo"."""
+    """ "done", "partial" (an output to continue with ``--resume``), "stale" (an output made
+    under another benchmark identity, to make anew with ``--force``) or "todo"."""
+    if made_under_another_identity(step):
+        return "stale"
     cmd, out = step.argv[0], _out(step)
     if cmd == "eval":
         return "done" if _eval_table(step).is_file() else "todo"
@@ -331,16 +454,29 @@ def status(step: Step) -> str:
     return "todo"
 
 
+#: Commands that replace their output only when told to (``--force``).
+_FORCED = ("train", "record", "il-train", "sweep")
+
+
 def to_run(steps: Sequence[Step]) -> list[tuple[Step, str]]:
-    """Each step with its status; the argv of a partial step gets ``--resume``. A report or
-    plot after a step still to run is to run again: it reads that step's output."""
+    """Each step with its status; the argv of a partial step gets ``--resume``, that of a
+    stale one ``--force`` (training, recording, sweeps; evaluations, reports and plots rewrite
+    their files). A report or plot after a step still to run is to run again: it reads that
+    step's output."""
     out, pending = [], False
+    remade: set[Path] = set()  # run folders this plan trains (again)
     for s in steps:
         st = status(s)
         if pending and s.argv[0] in ("report", "plot"):
             st = "todo"
+        if s.argv[0] == "eval" and st != "todo" and _out(s) in remade:
+            st = "todo"  # its run is trained again: the table would be of the old one
+        if s.argv[0] in ("train", "il-train") and st != "done":
+            remade.add(_out(s))
         if st == "partial":
             s = dataclasses.replace(s, argv=(*s.argv, "--resume"))
+        if st == "stale" and s.argv[0] in _FORCED:
+            s = dataclasses.replace(s, argv=(*s.argv, "--force"))
         pending |= st != "done"
         out.append((s, st))
     return out
@@ -354,8 +490,16 @@ def reproduce(
     runner: Callable[[list[str]], int] | None = None,
 ) -> int:
     """Run (or with ``dry_run`` print) result ``name``'s commands, skipping those done;
-    returns the number of commands run. A failing command stops the reproduction with its
-    exit status (``subprocess.CalledProcessError``)."""
+    returns the number of commands run. ``name`` "all" runs every recipe in ``RECIPES``'s
+    order. A failing command stops the reproduction with its exit status
+    (``subprocess.CalledProcessError``)."""
+    if name == ALL:
+        if preset not in PRESETS:
+            recipe(next(iter(RECIPES)), preset)  # the usual error
+        plans = {n: to_run(recipe(n, preset)) for n in RECIPES}
+        left = sum(s.cpu_min for plan in plans.values() for s, st in plan if st != "done")
+        log(f"all {len(RECIPES)} results ({preset} preset): ~{left:.0f} CPU min to go")
+        return sum(reproduce(n, preset, dry_run, log, runner) for n in RECIPES)
     plan = to_run(recipe(name, preset))
     total = sum(s.cpu_min for s, st in plan if st != "done")
     log(f"{name}, {RECIPES[name].result} ({preset} preset): {len(plan)} commands, "
@@ -366,7 +510,8 @@ def reproduce(
         if st == "done":
             log(f"  done     {s.command}")
             continue
-        log(f"  {'resume' if st == 'partial' else 'run':8} {s.command}   # {cost}")
+        verb = {"partial": "resume", "stale": "redo"}.get(st, "run")
+        log(f"  {verb:8} {s.command}   # {cost}")
         if dry_run:
             continue
         argv = [sys.executable, "-m", "sonogym.cli", *s.argv]

@@ -11,6 +11,7 @@ import torch
 from sonogym.agents.checkpoint import load_policy
 from sonogym.agents.configs import task_config
 from sonogym.agents.train import train
+from sonogym.envs.identity import identity
 from sonogym.envs.registry import check_algo, get_task
 
 FAST_ENV = dict(phantom_spacing=0.002)
@@ -54,6 +55,7 @@ def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
     assert cfg["task_config"]["ppo"]["time_limit_bootstrap"] is True
     assert cfg["task_config"]["obs_downsample"] == 2 and cfg["num_envs"] == 2
     assert cfg["task_config"]["env_kwargs"]["patients"] == [0]
+    assert cfg["identity"] == identity("navigation", cfg["task_config"]["env_kwargs"])
     events = list(run.glob("events.out.tfevents.*"))
     assert events and events[0].stat().st_size > 0
 
@@ -88,6 +90,12 @@ def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
     assert json.loads((run / "config.json").read_text())["resumed_from"] == 64
     with pytest.raises(ValueError, match="cannot resume"):
         _tiny("navigation", "a2c", run, steps=128, resume=True)
+    # a run trained under another benchmark identity is not continued under this one
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["identity"]["task_version"] = 1
+    (run / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="another benchmark identity.*navigation task v1"):
+        _tiny("navigation", "ppo", run, steps=128, resume=True)
 
 
 def test_navigation_with_heading_trains_an_image_branch_and_a_heading_branch(tmp_path):

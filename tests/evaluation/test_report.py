@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sonogym.envs.identity import IdentityMismatch, identity
 from sonogym.envs.registry import get_task
 from sonogym.evaluation.curves import curve_over_seeds, discover_runs, plot_curves
 from sonogym.evaluation.episodes import EpisodeLog, episode_patient, load_log, log_path, save_log
@@ -59,6 +60,7 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
             "action_space": {"low": [-1.0] * n_actions, "high": [1.0] * n_actions},
             "task_config": {"env_kwargs": env, "obs_downsample": 1, "obs_scales": {}},
         }
+    cfg["identity"] = identity(task, env)
     (run / "config.json").write_text(json.dumps(cfg))
     rng = np.random.default_rng(hash((task, algo, seed, simulator)) % 2**32)
     track = get_task(task).track
@@ -73,6 +75,7 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
             "eval_seed": 1000, "trials": TRIALS, "controllers": ["policy", "expert", "random"],
             "checkpoint": "agent_8.pt", "train_env": env, "test_env": test_env,
             "track_columns": list(track.columns), "track_units": list(track.units),
+            "identity": identity(task, test_env), "train_identity": cfg["identity"],
         }  # fmt: skip
         exp_rng = np.random.default_rng(len(proto) + (simulator == "learned"))  # run-independent
         metrics = {
@@ -145,7 +148,7 @@ def test_surgery_report_is_reproducible_and_pools_the_right_logs(surgery_runs, t
     a = build_report("surgery", [root], tmp_path / "a", curves=False)
     b = build_report("surgery", [root], tmp_path / "b", curves=False)
     files = sorted(p.name for p in a.parent.iterdir())
-    assert files == ["metrics.csv", "report.md", "table1.csv", "table1.md"]
+    assert files == ["identity.json", "metrics.csv", "report.md", "table1.csv", "table1.md"]
     for name in files:  # same logs, same numbers, byte for byte
         assert (a.parent / name).read_bytes() == (b.parent / name).read_bytes(), name
 
@@ -266,3 +269,27 @@ def test_the_episode_patient_follows_the_evaluation_envs():
     assert episode_patient(EpisodeLog(Path("x"), {"task": "surgery"}, {}, {}), 2) == 0
     with pytest.raises(ValueError, match="evaluate the run again"):
         episode_patient(log([3, 7], None), 1)
+
+
+def _set_identity(run: Path, **change) -> None:
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["identity"] = {**cfg["identity"], **change}
+    (run / "config.json").write_text(json.dumps(cfg))
+
+
+def test_report_and_plot_stamp_the_identity_and_refuse_a_run_of_another(tmp_path):
+    curve = [(10, 1.0), (20, 2.0)]
+    runs = [_fake_run(tmp_path / "runs", "navigation", "ppo", s, curve=curve) for s in (0, 1)]
+    md = build_report("navigation", runs, tmp_path / "report", curves=False).read_text()
+    assert "benchmark identity: generator v" in md and "navigation task v2" in md
+    assert json.loads((tmp_path / "report" / "identity.json").read_text())["task_version"] == 2
+    plot_curves(runs, tmp_path / "plot")
+    assert "navigation task v2" in (tmp_path / "plot" / "curves.md").read_text()
+
+    _set_identity(runs[1], task_version=1)
+    with pytest.raises(IdentityMismatch, match=f"{runs[1].name} .*task_version 1, not 2"):
+        build_report("navigation", runs, tmp_path / "report2", curves=False)
+    assert not (tmp_path / "report2").exists()  # refused before anything is written
+    with pytest.raises(IdentityMismatch, match=runs[1].name):
+        plot_curves(runs, tmp_path / "plot2")
+    assert not (tmp_path / "plot2").exists()

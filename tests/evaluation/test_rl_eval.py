@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from sonogym.agents.train import train
+from sonogym.envs.identity import identity
 from sonogym.evaluation.rl_eval import evaluate_run
 
 
@@ -38,6 +39,11 @@ def test_eval_table_for_policy_expert_random(nav_run):
     assert res["expert"]["return"][0] > res["random"]["return"][0]
     saved = json.loads((nav_run / "eval.json").read_text())
     assert saved["trials"] == 3 and saved["task"] == "navigation"
+    # what the episodes ran on and what the policy learned on, as the run recorded it
+    made = identity("navigation", {"patients": (0,), "phantom_spacing": 0.002})
+    assert saved["identity"] == made
+    assert saved["train_identity"] == json.loads((nav_run / "config.json").read_text())["identity"]
+    assert saved["train_identity"] == made
     md = (nav_run / "eval.md").read_text()
     assert md.count("\n") == 5 and "| expert |" in md
     # same seed, same starts: the deterministic policy's metrics repeat

@@ -12,6 +12,7 @@ import torch
 from typer.testing import CliRunner
 
 from sonogym.cli import app
+from sonogym.envs.identity import identity
 from sonogym.envs.policy import ExpertPolicy
 from sonogym.envs.registry import get_task, make_vec
 from sonogym.envs.rollout import rollout
@@ -198,6 +199,10 @@ def test_cli_record_il_train_and_eval_an_il_run(tmp_path):
     assert cfg["policy_config"]["image_size"] == [50, 37]  # the cpu size, images resampled
     assert cfg["policy_config"]["chunk_size"] == 20
     assert cfg["env_kwargs"] == {"phantom_spacing": 0.002}
+    # the dataset and the run trained on it record the identity it was recorded under
+    made = identity("navigation", {"phantom_spacing": 0.002})
+    assert cfg["identity"] == made
+    assert json.loads((data / "meta" / "info.json").read_text())["sonogym_identity"] == made
     res = runner.invoke(app, ["eval", "--run", str(run), "--trials", "2", "--envs", "2"])
     assert res.exit_code == 0, res.output
     assert "| policy |" in res.output and (run / "episodes" / "idt.npz").is_file()

@@ -37,9 +37,13 @@ class IdentityMismatch(ValueError):
     which result differs from the first, and in what."""
 
 
+def file_digest(path: str | Path) -> str:
+    """First 16 hex digits of a file's SHA-256: how identities name a net's weights."""
+    return _file_digest(str(Path(path).resolve()))
+
+
 @cache
 def _file_digest(path: str) -> str:
-    """First 16 hex digits of a file's SHA-256."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -56,7 +60,7 @@ def net_digests(nets) -> dict[str, str]:
     out = {}
     for item, path in zip(items, resolve_nets(items), strict=True):
         name = f"net{item}" if isinstance(item, int) else str(path)
-        out[name] = _file_digest(str(path))
+        out[name] = file_digest(path)
     return out
 
 

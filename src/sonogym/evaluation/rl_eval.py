@@ -170,6 +170,7 @@ def evaluate_run(
         "checkpoint": checkpoint.name,
         **({"safety_filter": filt} if filt else {}),
         "env_overrides": to_jsonable(overrides),
+        "test_env": to_jsonable(test_env),
         **made_with,
         "results": results,
         "distribution": spread,

@@ -251,10 +251,11 @@ class DatasetWriter:
     # --- public -----------------------------------------------------------------------------
 
     def set_info(self, key: str, value: Any) -> None:
-        """Add a field of the writer's own (LeRobot readers ignore unknown ones) to info.json,
-        written now and kept with every commit."""
-        if key in fmt.new_info(1, {}, None, 1):
-            raise ValueError(f"{key!r} is one of LeRobot's info.json fields")
+        """Add a field of sonogym's own, named ``sonogym_*`` so as never to take one of
+        LeRobot's (its readers ignore unknown fields), to info.json: written now and kept with
+        every commit."""
+        if not key.startswith("sonogym_"):
+            raise ValueError(f"info.json fields of sonogym's own are named sonogym_*, not {key!r}")
         self.info[key] = value
         self._write_info(self.info)
 

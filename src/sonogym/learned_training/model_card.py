@@ -191,7 +191,12 @@ def model_card(work: str | Path) -> dict:
     from torchmetrics.functional.image import structural_similarity_index_measure as ssim
 
     pair = [[float(ssim(a, b, data_range=1.0)) for b in outs] for a in outs]
-    card = {"nets": nets, "pairwise_ssim": pair, "common_input": "net 0 unseen-phantom CT",
+    from sonogym.envs.identity import file_digest
+
+    digests = {f"net{k}": file_digest(recipe.run_dir(work, k) / "generator.pt")
+               for k in range(recipe.NUM_NETS)}  # fmt: skip
+    card = {"nets": nets, "digests": digests, "pairwise_ssim": pair,
+            "common_input": "net 0 unseen-phantom CT",
             "recipe": {"image_size": recipe.IMAGE_SIZE, "pixel_spacing_m": recipe.PIXEL_SPACING,
                        "train_phantoms": recipe.TRAIN_PHANTOMS,
                        "unseen_phantom": recipe.UNSEEN_PHANTOM,

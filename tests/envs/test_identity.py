@@ -8,6 +8,7 @@ from sonogym.anatomy.phantom import GENERATOR_VERSION
 from sonogym.anatomy.variants import VARIANT_VERSION
 from sonogym.envs.identity import IdentityMismatch, check_one_identity, identity, stamp
 from sonogym.envs.registry import get_task
+from sonogym.ultrasound.learned.inference import resolve_precision
 from sonogym.ultrasound.learned.shipped import shipped_weights
 from sonogym.ultrasound.simulator import MODEL_VERSIONS
 
@@ -36,7 +37,7 @@ def test_learned_identity_names_each_net_by_its_content():
 
     ident = identity("navigation", {"simulator": "learned", "learned_nets": (0, 4)})
     us = ident["ultrasound"]
-    assert us["model"] == "learned" and us["precision"] == "float32"
+    assert us["model"] == "learned" and us["precision"] == resolve_precision("auto")
     assert list(us["nets"]) == ["net0", "net4"]
     digest = hashlib.sha256(shipped_weights(4).read_bytes()).hexdigest()[:16]
     assert us["nets"]["net4"] == digest
@@ -75,8 +76,9 @@ def test_a_table_refuses_a_learned_net_of_the_same_name_with_other_weights():
     b = {**a, "ultrasound": {**a["ultrasound"], "nets": {"net0": "0" * 16}}}
     with pytest.raises(IdentityMismatch, match="learned net net0 with digest 0000"):
         check_one_identity({"a": a, "b": b})
-    c = {**a, "ultrasound": {**a["ultrasound"], "precision": "bfloat16"}}
-    with pytest.raises(IdentityMismatch, match="precision 'bfloat16'"):
+    other = {"float32": "bfloat16", "bfloat16": "float32"}[a["ultrasound"]["precision"]]
+    c = {**a, "ultrasound": {**a["ultrasound"], "precision": other}}
+    with pytest.raises(IdentityMismatch, match=f"precision '{other}'"):
         check_one_identity({"a": a, "c": c})
 
 

@@ -154,3 +154,19 @@ def test_imaging_randomisation_acts_on_each_envs_own_net():
     assert (obs - own).abs().mean() > 0.01  # the settings change the images
     ids = torch.tensor([4, 1])
     assert torch.allclose(sc.observe("us", ids), obs[ids], atol=1e-5)
+
+
+def test_learned_precision_auto_is_bfloat16_only_where_the_cpu_has_it(monkeypatch):
+    from sonogym.envs.identity import identity
+    from sonogym.envs.navigation import NavigationConfig
+    from sonogym.ultrasound.learned import inference
+
+    for native, want in ((True, "bfloat16"), (False, "float32")):
+        monkeypatch.setattr(inference, "native_bfloat16", lambda native=native: native)
+        assert NavigationConfig(simulator="learned").learned_precision == want
+        kw = {"simulator": "learned", "learned_nets": (0,)}
+        assert identity("navigation", kw)["ultrasound"]["precision"] == want
+    # an explicit precision is kept whatever the CPU, and a bad one named
+    assert NavigationConfig(learned_precision="float32").learned_precision == "float32"
+    with pytest.raises(ValueError, match="precision must be one of"):
+        NavigationConfig(learned_precision="half")

@@ -64,16 +64,18 @@ def net_digests(nets) -> dict[str, str]:
     return out
 
 
-def ultrasound_identity(simulator: str, learned_nets=(), learned_precision: str = "float32"):
+def ultrasound_identity(simulator: str, learned_nets=(), learned_precision: str = "auto"):
     """What images a result: ``{"model": name, "version": n}`` for a model-based model;
-    ``{"model": "learned", "nets": {name: digest}, "precision": ...}`` for the learned one."""
+    ``{"model": "learned", "nets": {name: digest}, "precision": ...}`` for the learned one,
+    the precision as resolved on this machine ("auto": ``resolve_precision``)."""
+    from sonogym.ultrasound.learned.inference import resolve_precision
     from sonogym.ultrasound.simulator import MODEL_VERSIONS
 
     if simulator == "learned":
         return {
             "model": "learned",
             "nets": net_digests(learned_nets),
-            "precision": str(learned_precision),
+            "precision": resolve_precision(learned_precision),
         }
     return {"model": simulator, "version": MODEL_VERSIONS[simulator]}
 

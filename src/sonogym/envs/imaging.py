@@ -28,11 +28,11 @@ DEFAULT_LEARNED_NETS = (0, 1, 2, 3, 4)
 def check_simulator(name: str, learned_nets, learned_precision: str = "float32") -> None:
     if name not in SIMULATORS:
         raise ValueError(f"simulator {name!r} is not one of {SIMULATORS}")
-    from sonogym.ultrasound.learned.simulator import PRECISIONS
+    from sonogym.ultrasound.learned.inference import AUTO, PRECISIONS
 
-    if learned_precision not in PRECISIONS:
+    if learned_precision not in (AUTO, *PRECISIONS):
         raise ValueError(
-            f"learned_precision must be one of {PRECISIONS}, got {learned_precision!r}"
+            f"learned_precision must be one of {(AUTO, *PRECISIONS)}, got {learned_precision!r}"
         )
     if name == "learned":
         from sonogym.ultrasound.learned.shipped import resolve_nets

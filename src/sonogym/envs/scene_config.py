@@ -15,6 +15,7 @@ from typing import ClassVar
 
 from sonogym.envs.base import check_number_fields
 from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.ultrasound.learned.inference import resolve_precision
 from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 
 
@@ -31,7 +32,9 @@ class SceneConfig:
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
     simulator: SimulatorName = "physical"
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
-    learned_precision: str = "float32"  # simulator="learned": or "bfloat16" (~2x faster on CPU)
+    # simulator="learned": the nets' working precision, "float32" (the reference), "bfloat16"
+    # (~2x faster on a CPU with native bfloat16) or "auto": bfloat16 where the CPU has it
+    learned_precision: str = "auto"
     crop_to_reach: bool = True  # images slice only the region the probe can reach (memory)
     imaging_randomization: bool | ImagingRandomization = False  # per-episode display settings
     # (gain, range, TGC, attenuation, speckle, depth) for training; True: the documented ranges
@@ -53,3 +56,9 @@ class SceneConfig:
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
         object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
+        # the precision a run uses, as it records it (an "auto" resolved on this machine)
+        object.__setattr__(
+            self,
+            "learned_precision",
+            resolve_precision(self.learned_precision, "learned_precision"),
+        )

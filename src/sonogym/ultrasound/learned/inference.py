@@ -33,13 +33,43 @@ same seed and thread count give the same images.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
 from sonogym.ultrasound.learned.networks import ResidualUnit, UNet, UpBlock
 
 PRECISIONS = ("float32", "bfloat16")
+#: what ``resolve_precision`` accepts besides ``PRECISIONS``
+AUTO = "auto"
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+#: /proc/cpuinfo flags of CPUs that compute in bfloat16 natively (elsewhere it is emulated, slow)
+_NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
+
+
+@functools.cache
+def native_bfloat16() -> bool:
+    """Whether this machine's CPU has bfloat16 instructions (AVX-512 BF16 or AMX)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((ln.split(":", 1)[1].split() for ln in f if ln.startswith("flags")), [])
+    except OSError:
+        return False
+    return any(flag in flags for flag in _NATIVE_BF16_FLAGS)
+
+
+def resolve_precision(precision: str, what: str = "precision") -> str:
+    """The working precision ``precision`` names: "auto" is bfloat16 on a CPU with native
+    bfloat16 (images bounded against float32 and the model card's figures unchanged:
+    docs/learned.md), float32 elsewhere; "float32" and "bfloat16" name themselves."""
+    if precision == AUTO:
+        return "bfloat16" if native_bfloat16() else "float32"
+    if precision not in PRECISIONS:
+        raise ValueError(f"{what} must be one of {(AUTO, *PRECISIONS)}, got {precision!r}")
+    return precision
+
+
 #: Pixels per map from which ATen's channels-last group norm takes its contiguous path (its
 #: threshold, ``feature_map_threshold`` in GroupNormKernel.cpp); below, pooled statistics.
 GROUP_NORM_MIN_PIXELS = 1024

@@ -265,9 +265,9 @@ CPU_MINUTES: dict[str, float] = {
     "runs/nav-ppo-small-s0": 45.0,
     "runs/nav-ppo-small-lb-s0": 27.0,
     "runs/recon-ppo-small-s0": 27.0,
-    # the shipped navigation policy's recipe: ~5 env steps/s at 64 envs, one thread
-    "runs/nav-pop64-scan-s0": 78.0,
-    "runs/nav-pop64-lobes-ft-s0": 21.0,
+    # the shipped navigation policy's recipe (its model card)
+    "runs/nav-pop64-scan-s0": 139.1,
+    "runs/nav-pop64-lobes-ft-s0": 35.4,
     "runs/sweep-nav-ppo": 15.0,
     "runs/sweep-nav-a2c": 5.0,
     "runs/ds-nav-mb-1000": 19.4,

@@ -91,11 +91,12 @@ def parse_env_options(
     """``KEY=VALUE`` items -> env keyword arguments; values read as int, float,
     true/false/none or text (``parse_value``), comma-separated for an option whose default is
     a tuple. Names an unknown option, a malformed item, a repeated key, a non-number for a
-    numeric option, an option that has its own flag (``own_flags``: option -> the flag to use)
-    and whatever the task's config refuses (NaN, inf or 1e309 for a number, 2.5 for an integer
-    option: 2.0 is taken as 2). ``flag_values``: the env options other flags give (e.g.
-    ``{"obs_mode": "us_scan"}`` from ``--obs-mode``), so that the config's checks across
-    options see the run's values, not the defaults."""
+    numeric option, anything but true/false for a switch, an option that has its own flag
+    (``own_flags``: option -> the flag to use) and whatever the task's config refuses (NaN,
+    inf or 1e309 for a number, 2.5 for an integer option: 2.0 is taken as 2).
+    ``flag_values``: the env options other flags give (e.g. ``{"obs_mode": "us_scan"}`` from
+    ``--obs-mode``), so that the config's checks across options see the run's values, not the
+    defaults."""
     from sonogym.envs.registry import get_task
 
     own_flags = own_flags or {}
@@ -123,8 +124,14 @@ def parse_env_options(
             out[key] = tuple(parse_value(v) for v in value.split(","))
             continue
         out[key] = parse_value(value)
+        if isinstance(default, bool) and not isinstance(out[key], bool):
+            raise ValueError(
+                f"--env-option {key}={value}: {key} is a switch; write true or false "
+                f"(default {str(default).lower()})"
+            )
         number = (int, float)
-        if isinstance(default, number) and not isinstance(out[key], number):
+        numeric = isinstance(out[key], number) and not isinstance(out[key], bool)
+        if isinstance(default, number) and not isinstance(default, bool) and not numeric:
             raise ValueError(f"--env-option {key}={value}: expected a number (default {default!r})")
     base = dict(flag_values or {})
     try:  # the config's own checks (finite numbers, integers, ranges, options that go together)

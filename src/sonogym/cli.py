@@ -991,17 +991,63 @@ def lb_train(
 
 def main() -> None:
     """The ``sonogym`` entry point: bad input (a missing or malformed file, an invalid option,
-    a folder that already holds a run) ends with one line naming the problem and the fix, not a
-    traceback; an interrupted training run (Ctrl-C) has saved a checkpoint and exits with 130."""
+    a folder that already holds a run, an output that cannot be written) ends with one line on
+    stderr naming the problem and the fix, not a traceback; Ctrl-C ends with one line saying
+    what was kept (an interrupted training run has saved a checkpoint) and exits with 130."""
+    click = _click_exceptions()
+
+    from sonogym.outputs import CommandInterrupted
     from sonogym.runs import TrainingInterrupted
 
     try:
-        app()
-    except TrainingInterrupted:
+        code = app(standalone_mode=False)
+    except TrainingInterrupted:  # its message is out already
         raise SystemExit(130) from None
+    except CommandInterrupted as e:
+        _error(f"interrupted: {e}", 130)
+    except click.NoArgsIsHelpError as e:
+        e.show()
+        raise SystemExit(e.exit_code) from None
+    except click.ClickException as e:  # typer's usage errors, in one line
+        _error(_usage_message(e), e.exit_code)
+    except typer.Abort:
+        _error("aborted", 1)
     except (ValueError, OSError) as e:  # includes the loaders' named errors
-        typer.echo(f"sonogym: error: {e}", err=True)
-        raise SystemExit(1) from None
+        _error(f"error: {e}", 1)
+    if code == 130:  # Ctrl-C outside the commands' own handling
+        _error("interrupted", 130)
+    if isinstance(code, int) and code:
+        raise SystemExit(code)
+
+
+def _click_exceptions() -> Any:
+    """The exceptions of the click typer runs on (typer >= 0.20 carries its own copy)."""
+    try:
+        from typer._click import exceptions
+    except ImportError:
+        from click import exceptions
+    return exceptions
+
+
+def _error(line: str, code: int) -> typing.NoReturn:
+    typer.echo(f"sonogym: {' '.join(line.split())}", err=True)
+    raise SystemExit(code)
+
+
+def _usage_message(e: Any) -> str:
+    """A usage error's message as one line: ``error: <what>``, with where to read the options
+    for an unknown or missing option."""
+    click = _click_exceptions()
+    msg = e.format_message()
+    if isinstance(e, click.BadParameter) and e.param is None and e.param_hint is None:
+        return f"error: {msg.removeprefix('Invalid value: ')}"
+    ctx = getattr(e, "ctx", None)
+    if ctx is None or (
+        isinstance(e, click.BadParameter) and not isinstance(e, click.MissingParameter)
+    ):
+        return f"error: {msg}"
+    command = " ".join(["sonogym"] + ([ctx.info_name] if ctx.parent is not None else []))
+    return f"error: {msg} (see {command} --help)"
 
 
 if __name__ == "__main__":

@@ -659,6 +659,7 @@ def eval_(
     from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
     from sonogym.evaluation.rl_eval import CONTROLLERS, evaluate_run, format_table, table_stem
+    from sonogym.outputs import undo_on_failure
 
     if (run is None) == (pretrained is None):
         raise typer.BadParameter("give --run RUN or --pretrained NAME (one of them)")
@@ -684,18 +685,25 @@ def eval_(
                 f"{protocol}, which sets its own"
             )
         overrides, protocol = {"patients": parse_patients(patients)}, None
-    try:
-        results = evaluate_run(
-            run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
-            held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
-            name=name, out=out, controllers=tuple(controllers) if controllers else CONTROLLERS,
-            safety_filter={"mode": filter_mode, "threshold": filter_threshold},
-        )  # fmt: skip
-    except (FileNotFoundError, ValueError) as e:
-        raise typer.BadParameter(str(e)) from None
     log = name or protocol or "custom"
     stem = table_stem(log)
-    table = Path(out or run) / f"{stem}.md"
+    dest = Path(out or run)
+    written = [dest / f"{stem}.json", dest / f"{stem}.md", dest / "episodes" / f"{log}.npz",
+               dest / f"trajectories-{log}.png"]  # fmt: skip
+    what = f"pretrained policy {pretrained}" if pretrained else f"run {run}"
+    typer.echo(f"eval: {what}, {trials} episodes per controller; results go to {dest}/", err=True)
+    try:
+        with undo_on_failure(*written):
+            results = evaluate_run(
+                run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
+                held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
+                name=name, out=out, controllers=tuple(controllers) if controllers else CONTROLLERS,
+                safety_filter={"mode": filter_mode, "threshold": filter_threshold},
+                progress=True,
+            )  # fmt: skip
+    except (FileNotFoundError, ValueError) as e:
+        raise typer.BadParameter(str(e)) from None
+    table = dest / f"{stem}.md"
     typer.echo(table.read_text() if table.is_file() else format_table(results), nl=False)
     typer.echo(
         f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"

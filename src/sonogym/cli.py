@@ -884,6 +884,10 @@ def view(
     port: Annotated[
         int, typer.Option(help="--web: the viewer's port (its data stream uses the next one).")
     ] = 9090,
+    force: Annotated[
+        bool,
+        typer.Option(help="--save: replace an existing file that is not a sonogym recording."),
+    ] = False,
 ) -> None:
     """A 3-D view of an env stepped by a policy, a run's saved episode or a dataset's episode
     in Rerun: the patient's skin and bones, the arms, the probe with its live image, the goal,
@@ -926,7 +930,8 @@ def view(
                       steps=steps, seed=episode_seed, run=run, protocol=protocol,
                       controller=controller, dataset=dataset, episode=episode)  # fmt: skip
     try:
-        run_view(req, save=save, web=web, web_port=port, log=typer.echo)
+        run_view(req, save=save, web=web, web_port=port, log=typer.echo, force=force,
+                 progress=True)  # fmt: skip
     except (FileNotFoundError, IndexError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
 

@@ -785,18 +785,37 @@ def export(
     name: Annotated[str, typer.Option(help="Name of the shipped policy (e.g. navigation).")],
     to: Annotated[
         Path | None,
-        typer.Option(help="Folder of pretrained policies (default: the package's own)."),
+        typer.Option(
+            help="Folder of pretrained policies to write NAME/ into (required: the package's "
+            "own folder is named only on purpose)."
+        ),
     ] = None,
     checkpoint: Annotated[
         Path | None, typer.Option(help="Checkpoint (default: the run's newest readable one).")
     ] = None,
     notes: Annotated[str, typer.Option(help="Text for the model card's notes.")] = "",
+    force: Annotated[
+        bool,
+        typer.Option(
+            help="Replace a policy of that name in --to: only the files export writes; other "
+            "files there are kept."
+        ),
+    ] = False,
 ) -> None:
     """Make a run's policy a pretrained policy: its config, acting weights (safetensors) and a
-    model card from its checkpoint times and the evaluations in its folder."""
-    from sonogym.evaluation.pretrained import export_pretrained
+    model card from its checkpoint times and the evaluations in its folder. An existing policy
+    of that name is refused without --force; a run that stopped early or was never evaluated
+    gets a warning, and its card says so."""
+    from sonogym.evaluation.pretrained import PRETRAINED_DIR, export_pretrained
 
-    dest = export_pretrained(run, name, to, checkpoint, notes)
+    if to is None:
+        raise typer.BadParameter(
+            f"give --to FOLDER, the folder of pretrained policies to write {name}/ into (the "
+            f"policies that ship with sonogym are in {PRETRAINED_DIR}; name it to replace one)"
+        )
+    dest = export_pretrained(run, name, to, checkpoint, notes, force=force,
+                             log=lambda m: typer.echo(m, err=True),
+                             warn=lambda m: typer.echo(f"warning: {m}", err=True))  # fmt: skip
     typer.echo(f"wrote {dest}/ (config.json, policy.safetensors, model_card.json, model_card.md)")
 
 

@@ -173,13 +173,16 @@ def morphometry(
         Path, typer.Option(help="Folder for population.json, morphometry.md and comparison.png.")
     ] = Path("docs/results/morphometry"),
     subject: Annotated[
-        Path,
-        typer.Option(help="Real TotalSegmentator subject folder (ct.nii.gz + segmentations/)."),
-    ] = Path("tests/data/totalsegmentator_example"),
+        Path | None,
+        typer.Option(
+            help="Real TotalSegmentator subject folder (ct.nii.gz + segmentations/); default: "
+            "the example subject that ships with sonogym."
+        ),
+    ] = None,
     seeds: Annotated[int, typer.Option(help="Phantoms in the population (seeds 0, 1, ...).")] = 40,
     spacing: Annotated[float, typer.Option(help="Phantom voxel size in mm (0.5-2.0).")] = 2.0,
     subject_spacing: Annotated[
-        float, typer.Option(help="Voxel size in mm the real subject is loaded at.")
+        float, typer.Option(help="Voxel size in mm the real subject is loaded at (0.25-5).")
     ] = 1.0,
     doc: Annotated[
         Path | None,
@@ -191,15 +194,27 @@ def morphometry(
 ) -> None:
     """Measure a phantom population and a real subject the same way (spine morphometry, soft
     tissue depths, bone-hit and skin-to-muscle profiles at the L4 goal views) and write the
-    comparison."""
-    from sonogym.viz.morphometry import write_report
+    comparison. Every option is checked before anything is measured; a run that fails or is
+    interrupted leaves no file of its own."""
+    from sonogym.outputs import check_folder, undo_on_failure
+    from sonogym.package_data import data_path, example_subject
+    from sonogym.viz.morphometry import check_report, write_report
 
     _check_positive(("--seeds", seeds))
-    cmd = (f"sonogym morphometry --out {out} --subject {subject} --seeds {seeds} "
-           f"--spacing {spacing:g} --subject-spacing {subject_spacing:g}"
+    folder = example_subject() if subject is None else Path(data_path(subject))
+    with _bad_parameter():
+        check_report(folder, range(seeds), spacing * 1e-3, subject_spacing * 1e-3, doc)
+    check_folder(out, "--out")
+    shown = "the example subject shipped with sonogym" if subject is None else folder
+    typer.echo(f"morphometry: {seeds} phantoms at {spacing:g} mm against {shown}; "
+               f"writing to {out.absolute()}/")  # fmt: skip
+    cmd = (f"sonogym morphometry --out {out}" + (f" --subject {subject}" if subject else "")
+           + f" --seeds {seeds} --spacing {spacing:g} --subject-spacing {subject_spacing:g}"
            + (f" --doc {doc}" if doc else ""))  # fmt: skip
-    paths = write_report(out, subject, range(seeds), spacing * 1e-3, subject_spacing * 1e-3,
-                         doc=doc, command=cmd, log=typer.echo)  # fmt: skip
+    names = ("population.json", "morphometry.md", "comparison.png")
+    with undo_on_failure(*(out / n for n in names)):
+        paths = write_report(out, folder, range(seeds), spacing * 1e-3, subject_spacing * 1e-3,
+                             doc=doc, command=cmd, log=typer.echo)  # fmt: skip
     for path in paths.values():
         typer.echo(f"wrote {path}")
 

@@ -849,21 +849,38 @@ def reproduce(
     dry_run: Annotated[
         bool, typer.Option(help="Print the commands and their CPU time; run nothing.")
     ] = False,
+    root: Annotated[
+        Path | None,
+        typer.Option(
+            help="Folder the recipe's outputs (runs/, docs/results/, reports/) go under, made "
+            "if absent (default: the current folder)."
+        ),
+    ] = None,
 ) -> None:
     """Run the train / record / il-train / eval / report commands that make a published result
     (docs/results.md), in order, skipping those whose output is complete; run it again to
-    resume."""
+    resume. Every output goes under --root (said at the start); the data the recipes read ships
+    with sonogym."""
     import subprocess
 
     from sonogym import reproduce as R
+    from sonogym.reproduce_root import run_command, working_in
 
-    try:
-        R.reproduce(name, preset, dry_run, log=typer.echo)
-    except ValueError as e:
-        raise typer.BadParameter(str(e)) from None
-    except subprocess.CalledProcessError as e:
-        typer.echo(f"stopped: `{e.cmd}` exited with {e.returncode}; fix it and run again")
-        raise typer.Exit(e.returncode) from None
+    with _bad_parameter():
+        R.recipe(name, preset)  # an unknown result or preset, before any folder is touched
+    with working_in(root or Path.cwd(), create=not dry_run) as where:
+        lines = iter([f"; outputs under {where}/"])  # said on the plan's first line
+
+        def log(line: str) -> None:
+            typer.echo(line + next(lines, ""))
+
+        try:
+            R.reproduce(name, preset, dry_run, log=log, runner=run_command)
+        except ValueError as e:
+            raise typer.BadParameter(str(e)) from None
+        except subprocess.CalledProcessError as e:
+            typer.echo(f"stopped: `{e.cmd}` exited with {e.returncode}; fix it and run again")
+            raise typer.Exit(e.returncode) from None
 
 
 @app.command()

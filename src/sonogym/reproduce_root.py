@@ -65,10 +65,10 @@ def run_command(argv: list[str]) -> int:
         return child.wait()
     except KeyboardInterrupt:
         _stop(child)
+        trained = " (an interrupted training run saves a checkpoint)" if "train" in argv[3] else ""
         raise CommandInterrupted(
-            f"stopped `sonogym {' '.join(argv[3:])}` (an interrupted training run saved a "
-            f"checkpoint); the finished commands' outputs are kept in {Path.cwd()}; run the "
-            "same sonogym reproduce again to resume"
+            f"stopped `sonogym {' '.join(argv[3:])}`{trained}; the finished commands' outputs "
+            f"are kept in {Path.cwd()}; run the same sonogym reproduce again to resume"
         ) from None
 
 

@@ -424,3 +424,32 @@ def test_the_recipes_real_subject_ships_with_the_package(tmp_path, monkeypatch):
 def test_usage_errors_are_one_line(monkeypatch, capsys):
     code, _, err = sonogym(monkeypatch, capsys, "export", "--bogus")
     assert "--bogus" in one_line_error(code, err)
+
+
+def test_ctrl_c_in_reproduce_lets_the_running_command_stop_in_order(monkeypatch):
+    """subprocess.run killed a command 0.25 s after Ctrl-C, before a training run had saved its
+    checkpoint: the command (which had the terminal's Ctrl-C too) is waited for instead."""
+    from sonogym import reproduce_root
+    from sonogym.outputs import CommandInterrupted
+
+    class Child:  # a training run that needs a few seconds to save after Ctrl-C
+        signals: list = []
+        waits = 0
+
+        def __init__(self, argv):
+            pass
+
+        def wait(self, timeout=None):
+            Child.waits += 1
+            if Child.waits == 1:
+                raise KeyboardInterrupt  # the user's Ctrl-C, while the parent waits
+            return 130  # saved its checkpoint and stopped, within the grace time
+
+        def send_signal(self, sig):
+            Child.signals.append(sig)
+
+    monkeypatch.setattr(reproduce_root.subprocess, "Popen", Child)
+    argv = [sys.executable, "-m", "sonogym.cli", "train", "--task", "navigation"]
+    with pytest.raises(CommandInterrupted, match="stopped `sonogym train --task navigation`"):
+        reproduce_root.run_command(argv)
+    assert Child.signals == [] and Child.waits == 2  # waited, neither signalled nor killed

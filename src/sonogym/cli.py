@@ -673,7 +673,13 @@ def eval_(
     and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
     from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
-    from sonogym.evaluation.rl_eval import CONTROLLERS, evaluate_run, format_table, table_stem
+    from sonogym.evaluation.rl_eval import (
+        CONTROLLERS,
+        check_writable,
+        evaluate_run,
+        format_table,
+        table_stem,
+    )
     from sonogym.outputs import undo_on_failure
 
     if (run is None) == (pretrained is None):
@@ -706,8 +712,10 @@ def eval_(
     written = [dest / f"{stem}.json", dest / f"{stem}.md", dest / "episodes" / f"{log}.npz",
                dest / f"trajectories-{log}.png"]  # fmt: skip
     what = f"pretrained policy {pretrained}" if pretrained else f"run {run}"
-    typer.echo(f"eval: {what}, {trials} episodes per controller; results go to {dest}/", err=True)
     try:
+        check_writable(dest, log)  # before saying where the results go
+        typer.echo(f"eval: {what}, {trials} episodes per controller; results go to {dest}/",
+                   err=True)  # fmt: skip
         with undo_on_failure(*written):
             results = evaluate_run(
                 run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,

@@ -173,13 +173,16 @@ def morphometry(
         Path, typer.Option(help="Folder for population.json, morphometry.md and comparison.png.")
     ] = Path("docs/results/morphometry"),
     subject: Annotated[
-        Path,
-        typer.Option(help="Real TotalSegmentator subject folder (ct.nii.gz + segmentations/)."),
-    ] = Path("tests/data/totalsegmentator_example"),
+        Path | None,
+        typer.Option(
+            help="Real TotalSegmentator subject folder (ct.nii.gz + segmentations/); default: "
+            "the example subject that ships with sonogym."
+        ),
+    ] = None,
     seeds: Annotated[int, typer.Option(help="Phantoms in the population (seeds 0, 1, ...).")] = 40,
     spacing: Annotated[float, typer.Option(help="Phantom voxel size in mm (0.5-2.0).")] = 2.0,
     subject_spacing: Annotated[
-        float, typer.Option(help="Voxel size in mm the real subject is loaded at.")
+        float, typer.Option(help="Voxel size in mm the real subject is loaded at (0.25-5).")
     ] = 1.0,
     doc: Annotated[
         Path | None,
@@ -191,15 +194,27 @@ def morphometry(
 ) -> None:
     """Measure a phantom population and a real subject the same way (spine morphometry, soft
     tissue depths, bone-hit and skin-to-muscle profiles at the L4 goal views) and write the
-    comparison."""
-    from sonogym.viz.morphometry import write_report
+    comparison. Every option is checked before anything is measured; a run that fails or is
+    interrupted leaves no file of its own."""
+    from sonogym.outputs import check_folder, undo_on_failure
+    from sonogym.package_data import data_path, example_subject
+    from sonogym.viz.morphometry import check_report, write_report
 
     _check_positive(("--seeds", seeds))
-    cmd = (f"sonogym morphometry --out {out} --subject {subject} --seeds {seeds} "
-           f"--spacing {spacing:g} --subject-spacing {subject_spacing:g}"
+    folder = example_subject() if subject is None else Path(data_path(subject))
+    with _bad_parameter():
+        check_report(folder, range(seeds), spacing * 1e-3, subject_spacing * 1e-3, doc)
+    check_folder(out, "--out")
+    shown = "the example subject shipped with sonogym" if subject is None else folder
+    typer.echo(f"morphometry: {seeds} phantoms at {spacing:g} mm against {shown}; "
+               f"writing to {out.absolute()}/")  # fmt: skip
+    cmd = (f"sonogym morphometry --out {out}" + (f" --subject {subject}" if subject else "")
+           + f" --seeds {seeds} --spacing {spacing:g} --subject-spacing {subject_spacing:g}"
            + (f" --doc {doc}" if doc else ""))  # fmt: skip
-    paths = write_report(out, subject, range(seeds), spacing * 1e-3, subject_spacing * 1e-3,
-                         doc=doc, command=cmd, log=typer.echo)  # fmt: skip
+    names = ("population.json", "morphometry.md", "comparison.png")
+    with undo_on_failure(*(out / n for n in names)):
+        paths = write_report(out, folder, range(seeds), spacing * 1e-3, subject_spacing * 1e-3,
+                             doc=doc, command=cmd, log=typer.echo)  # fmt: skip
     for path in paths.values():
         typer.echo(f"wrote {path}")
 
@@ -658,7 +673,14 @@ def eval_(
     and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
     from sonogym.evaluation import pretrained as shipped
     from sonogym.evaluation.protocols import PROTOCOLS
-    from sonogym.evaluation.rl_eval import CONTROLLERS, evaluate_run, format_table, table_stem
+    from sonogym.evaluation.rl_eval import (
+        CONTROLLERS,
+        check_writable,
+        evaluate_run,
+        format_table,
+        table_stem,
+    )
+    from sonogym.outputs import undo_on_failure
 
     if (run is None) == (pretrained is None):
         raise typer.BadParameter("give --run RUN or --pretrained NAME (one of them)")
@@ -684,18 +706,27 @@ def eval_(
                 f"{protocol}, which sets its own"
             )
         overrides, protocol = {"patients": parse_patients(patients)}, None
-    try:
-        results = evaluate_run(
-            run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
-            held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
-            name=name, out=out, controllers=tuple(controllers) if controllers else CONTROLLERS,
-            safety_filter={"mode": filter_mode, "threshold": filter_threshold},
-        )  # fmt: skip
-    except (FileNotFoundError, ValueError) as e:
-        raise typer.BadParameter(str(e)) from None
     log = name or protocol or "custom"
     stem = table_stem(log)
-    table = Path(out or run) / f"{stem}.md"
+    dest = Path(out or run)
+    written = [dest / f"{stem}.json", dest / f"{stem}.md", dest / "episodes" / f"{log}.npz",
+               dest / f"trajectories-{log}.png"]  # fmt: skip
+    what = f"pretrained policy {pretrained}" if pretrained else f"run {run}"
+    try:
+        check_writable(dest, log)  # before saying where the results go
+        typer.echo(f"eval: {what}, {trials} episodes per controller; results go to {dest}/",
+                   err=True)  # fmt: skip
+        with undo_on_failure(*written):
+            results = evaluate_run(
+                run, trials=trials, envs=envs, seed=seed, device=device, protocol=protocol,
+                held_out_patients=held_out, checkpoint=checkpoint, env_overrides=overrides,
+                name=name, out=out, controllers=tuple(controllers) if controllers else CONTROLLERS,
+                safety_filter={"mode": filter_mode, "threshold": filter_threshold},
+                progress=True,
+            )  # fmt: skip
+    except (FileNotFoundError, ValueError) as e:
+        raise typer.BadParameter(str(e)) from None
+    table = dest / f"{stem}.md"
     typer.echo(table.read_text() if table.is_file() else format_table(results), nl=False)
     typer.echo(
         f"wrote {out or run}/{stem}.md, {stem}.json, episodes/{log}.npz, trajectories-{log}.png"
@@ -777,18 +808,37 @@ def export(
     name: Annotated[str, typer.Option(help="Name of the shipped policy (e.g. navigation).")],
     to: Annotated[
         Path | None,
-        typer.Option(help="Folder of pretrained policies (default: the package's own)."),
+        typer.Option(
+            help="Folder of pretrained policies to write NAME/ into (required: the package's "
+            "own folder is named only on purpose)."
+        ),
     ] = None,
     checkpoint: Annotated[
         Path | None, typer.Option(help="Checkpoint (default: the run's newest readable one).")
     ] = None,
     notes: Annotated[str, typer.Option(help="Text for the model card's notes.")] = "",
+    force: Annotated[
+        bool,
+        typer.Option(
+            help="Replace a policy of that name in --to: only the files export writes; other "
+            "files there are kept."
+        ),
+    ] = False,
 ) -> None:
     """Make a run's policy a pretrained policy: its config, acting weights (safetensors) and a
-    model card from its checkpoint times and the evaluations in its folder."""
-    from sonogym.evaluation.pretrained import export_pretrained
+    model card from its checkpoint times and the evaluations in its folder. An existing policy
+    of that name is refused without --force; a run that stopped early or was never evaluated
+    gets a warning, and its card says so."""
+    from sonogym.evaluation.pretrained import PRETRAINED_DIR, export_pretrained
 
-    dest = export_pretrained(run, name, to, checkpoint, notes)
+    if to is None:
+        raise typer.BadParameter(
+            f"give --to FOLDER, the folder of pretrained policies to write {name}/ into (the "
+            f"policies that ship with sonogym are in {PRETRAINED_DIR}; name it to replace one)"
+        )
+    dest = export_pretrained(run, name, to, checkpoint, notes, force=force,
+                             log=lambda m: typer.echo(m, err=True),
+                             warn=lambda m: typer.echo(f"warning: {m}", err=True))  # fmt: skip
     typer.echo(f"wrote {dest}/ (config.json, policy.safetensors, model_card.json, model_card.md)")
 
 
@@ -807,21 +857,39 @@ def reproduce(
     dry_run: Annotated[
         bool, typer.Option(help="Print the commands and their CPU time; run nothing.")
     ] = False,
+    root: Annotated[
+        Path | None,
+        typer.Option(
+            help="Folder the recipe's outputs (runs/, docs/results/, reports/) go under, made "
+            "if absent (default: the current folder)."
+        ),
+    ] = None,
 ) -> None:
     """Run the train / record / il-train / eval / report commands that make a published result
     (docs/results.md), in order, skipping those whose output is complete; run it again to
-    resume."""
+    resume. Every output goes under --root (said at the start); the data the recipes read ships
+    with sonogym."""
     import subprocess
 
     from sonogym import reproduce as R
+    from sonogym.reproduce_root import run_command, working_in
 
-    try:
-        R.reproduce(name, preset, dry_run, log=typer.echo)
-    except ValueError as e:
-        raise typer.BadParameter(str(e)) from None
-    except subprocess.CalledProcessError as e:
-        typer.echo(f"stopped: `{e.cmd}` exited with {e.returncode}; fix it and run again")
-        raise typer.Exit(e.returncode) from None
+    with _bad_parameter():
+        # an unknown result or preset, before any folder is touched
+        R.recipe(next(iter(R.RECIPES)) if name == R.ALL else name, preset)
+    with working_in(root or Path.cwd(), create=not dry_run) as where:
+        lines = iter([f"; outputs under {where}/"])  # said on the plan's first line
+
+        def log(line: str) -> None:
+            typer.echo(line + next(lines, ""))
+
+        try:
+            R.reproduce(name, preset, dry_run, log=log, runner=run_command)
+        except ValueError as e:
+            raise typer.BadParameter(str(e)) from None
+        except subprocess.CalledProcessError as e:
+            typer.echo(f"stopped: `{e.cmd}` exited with {e.returncode}; fix it and run again")
+            raise typer.Exit(e.returncode) from None
 
 
 @app.command()
@@ -876,6 +944,10 @@ def view(
     port: Annotated[
         int, typer.Option(help="--web: the viewer's port (its data stream uses the next one).")
     ] = 9090,
+    force: Annotated[
+        bool,
+        typer.Option(help="--save: replace an existing file that is not a sonogym recording."),
+    ] = False,
 ) -> None:
     """A 3-D view of an env stepped by a policy, a run's saved episode or a dataset's episode
     in Rerun: the patient's skin and bones, the arms, the probe with its live image, the goal,
@@ -918,7 +990,8 @@ def view(
                       steps=steps, seed=episode_seed, run=run, protocol=protocol,
                       controller=controller, dataset=dataset, episode=episode)  # fmt: skip
     try:
-        run_view(req, save=save, web=web, web_port=port, log=typer.echo)
+        run_view(req, save=save, web=web, web_port=port, log=typer.echo, force=force,
+                 progress=True)  # fmt: skip
     except (FileNotFoundError, IndexError, ValueError) as e:
         raise typer.BadParameter(str(e)) from None
 
@@ -991,17 +1064,63 @@ def lb_train(
 
 def main() -> None:
     """The ``sonogym`` entry point: bad input (a missing or malformed file, an invalid option,
-    a folder that already holds a run) ends with one line naming the problem and the fix, not a
-    traceback; an interrupted training run (Ctrl-C) has saved a checkpoint and exits with 130."""
+    a folder that already holds a run, an output that cannot be written) ends with one line on
+    stderr naming the problem and the fix, not a traceback; Ctrl-C ends with one line saying
+    what was kept (an interrupted training run has saved a checkpoint) and exits with 130."""
+    click = _click_exceptions()
+
+    from sonogym.outputs import CommandInterrupted
     from sonogym.runs import TrainingInterrupted
 
     try:
-        app()
-    except TrainingInterrupted:
+        code = app(standalone_mode=False)
+    except TrainingInterrupted:  # its message is out already
         raise SystemExit(130) from None
+    except CommandInterrupted as e:
+        _error(f"interrupted: {e}", 130)
+    except click.NoArgsIsHelpError as e:
+        e.show()
+        raise SystemExit(e.exit_code) from None
+    except click.ClickException as e:  # typer's usage errors, in one line
+        _error(_usage_message(e), e.exit_code)
+    except typer.Abort:
+        _error("aborted", 1)
     except (ValueError, OSError) as e:  # includes the loaders' named errors
-        typer.echo(f"sonogym: error: {e}", err=True)
-        raise SystemExit(1) from None
+        _error(f"error: {e}", 1)
+    if code == 130:  # Ctrl-C outside the commands' own handling
+        _error("interrupted", 130)
+    if isinstance(code, int) and code:
+        raise SystemExit(code)
+
+
+def _click_exceptions() -> Any:
+    """The exceptions of the click typer runs on (typer >= 0.20 carries its own copy)."""
+    try:
+        from typer._click import exceptions
+    except ImportError:
+        from click import exceptions
+    return exceptions
+
+
+def _error(line: str, code: int) -> typing.NoReturn:
+    typer.echo(f"sonogym: {' '.join(line.split())}", err=True)
+    raise SystemExit(code)
+
+
+def _usage_message(e: Any) -> str:
+    """A usage error's message as one line: ``error: <what>``, with where to read the options
+    for an unknown or missing option."""
+    click = _click_exceptions()
+    msg = e.format_message()
+    if isinstance(e, click.BadParameter) and e.param is None and e.param_hint is None:
+        return f"error: {msg.removeprefix('Invalid value: ')}"
+    ctx = getattr(e, "ctx", None)
+    if ctx is None or (
+        isinstance(e, click.BadParameter) and not isinstance(e, click.MissingParameter)
+    ):
+        return f"error: {msg}"
+    command = " ".join(["sonogym"] + ([ctx.info_name] if ctx.parent is not None else []))
+    return f"error: {msg} (see {command} --help)"
 
 
 if __name__ == "__main__":

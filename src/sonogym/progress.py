@@ -1,5 +1,5 @@
-"""Progress of long loops (training, recording, data generation): a tqdm bar on a terminal,
-plain lines in a log.
+"""Progress of long loops (training, recording, data generation, evaluation, loading an env's
+patients): a tqdm bar on a terminal, plain lines in a log.
 
 A tqdm bar redraws itself with carriage returns, which a terminal shows as one changing line
 but a log file keeps whole: with output redirected, a 45-s training run wrote ~1,800 updates
@@ -40,6 +40,14 @@ def progress_bar(
 
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, file=stream)
     return PlainProgress(total, desc, initial, unit, stream)
+
+
+def announce(line: str, enabled: bool = True, stream: TextIO | None = None) -> None:
+    """One line saying what a long step is about to do, where its progress goes (stderr)."""
+    if enabled:
+        stream = sys.stderr if stream is None else stream
+        stream.write(line + "\n")
+        stream.flush()
 
 
 class PlainProgress:

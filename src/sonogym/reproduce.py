@@ -287,7 +287,9 @@ CPU_MINUTES: dict[str, float] = {
 def recipe(name: str, preset: str = "cpu") -> list[Step]:
     """The steps of result ``name`` under ``preset`` ("cpu" or "paper")."""
     if name not in RECIPES:
-        raise ValueError(f"no result named {name!r}; choose one of {', '.join(RECIPES)}")
+        raise ValueError(
+            f"no result named {name!r}; choose one of {', '.join(RECIPES)}, or {ALL} for every one"
+        )
     if preset not in PRESETS:
         raise ValueError(f"preset {preset!r}: choose one of {', '.join(PRESETS)}")
     steps = _steps(RECIPES[name].commands, CPU_MINUTES)

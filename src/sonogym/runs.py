@@ -340,6 +340,14 @@ def prepare_output(path: str | Path, resume: bool, force: bool, kind: str) -> Pr
             return True
         if other:
             raise OutputExistsError(other)
+        foreign = [p.name + ("/" if p.is_dir() else "") for p in output_entries(path)
+                   if not _owned(p.name, kind)]  # fmt: skip
+        if not (resume or force) and foreign and read_marker(path) is None:
+            raise OutputExistsError(
+                f"{path} is not a {spec.what}: it holds {_some(foreign)}, which "
+                f"{spec.command} does not write, and no {MARKER} marker; choose another output "
+                "folder, or move those files out of it"
+            )
         if not (resume or force):
             raise OutputExistsError(
                 f"{path} already holds a {spec.what}; pass --resume to continue it or --force "
@@ -364,6 +372,12 @@ def prepare_output(path: str | Path, resume: bool, force: bool, kind: str) -> Pr
         out.release(failed=True)
         raise
     return out
+
+
+def _some(names: list[str], most: int = 5) -> str:
+    """The first ``most`` names, joined, and how many more."""
+    shown = ", ".join(names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 _TEMPORARY = re.compile(r"\.tmp(\d+)$")

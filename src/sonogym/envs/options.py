@@ -30,7 +30,10 @@ def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
     """Patients from the command line: an integer is a phantom seed, ``A-B`` (digits, A <= B)
     the seeds A..B inclusive, ``DIR@N`` variant N of the subject in folder DIR and ``DIR@A-B``
     its variants A..B (unless that is itself an existing path), anything else a subject folder;
-    None when none were given."""
+    None when none were given. The shipped subject's checkout path
+    (``tests/data/totalsegmentator_example``) names the package's copy where that path does
+    not exist (``sonogym.package_data.data_path``). ``DIR@X`` with an existing folder DIR and
+    an X that is no variant index is refused, naming the index."""
     if not specs:
         return None
     out: list[int | str] = []
@@ -41,10 +44,36 @@ def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
             lo, hi = (int(m.group(1)), int(m.group(2))) if m else (int(v[2]), int(v[3]))
             if lo > hi:
                 raise ValueError(f"patient range {p!r}: {lo} > {hi}; write it low-high")
-            out.extend(range(lo, hi + 1) if m else (f"{v[1]}@{i}" for i in range(lo, hi + 1)))
+            if m:
+                out.extend(range(lo, hi + 1))
+            else:
+                out.extend(f"{_subject_folder(v[1])}@{i}" for i in range(lo, hi + 1))
         else:
-            out.append(int(p) if p.lstrip("-").isdigit() else p)
+            out.append(int(p) if p.lstrip("-").isdigit() else _subject(p))
     return tuple(out)
+
+
+def _subject(spec: str) -> str:
+    """A subject folder or ``DIR@N`` from the command line, with the shipped subject's name
+    resolved (``data_path``); a variant index that is not a number is refused."""
+    if Path(spec).exists() or "@" not in spec:
+        return _subject_folder(spec)
+    folder, _, index = spec.rpartition("@")
+    resolved = _subject_folder(folder)
+    if not Path(resolved).is_dir():
+        return spec  # not a variant of a folder here: the loader names the missing folder
+    if not index.isdigit():
+        raise ValueError(
+            f"patient {spec!r}: {index!r} is not a variant index; write {folder}@N (variant N, "
+            f"a whole number >= 0) or {folder}@A-B (variants A to B)"
+        )
+    return f"{resolved}@{index}"
+
+
+def _subject_folder(folder: str) -> str:
+    from sonogym.package_data import data_path
+
+    return str(data_path(folder))
 
 
 def parse_learned_nets(text: str) -> tuple[int | str, ...]:
@@ -62,11 +91,12 @@ def parse_env_options(
     """``KEY=VALUE`` items -> env keyword arguments; values read as int, float,
     true/false/none or text (``parse_value``), comma-separated for an option whose default is
     a tuple. Names an unknown option, a malformed item, a repeated key, a non-number for a
-    numeric option, an option that has its own flag (``own_flags``: option -> the flag to use)
-    and whatever the task's config refuses (NaN, inf or 1e309 for a number, 2.5 for an integer
-    option: 2.0 is taken as 2). ``flag_values``: the env options other flags give (e.g.
-    ``{"obs_mode": "us_scan"}`` from ``--obs-mode``), so that the config's checks across
-    options see the run's values, not the defaults."""
+    numeric option, anything but true/false for a switch, an option that has its own flag
+    (``own_flags``: option -> the flag to use) and whatever the task's config refuses (NaN,
+    inf or 1e309 for a number, 2.5 for an integer option: 2.0 is taken as 2).
+    ``flag_values``: the env options other flags give (e.g. ``{"obs_mode": "us_scan"}`` from
+    ``--obs-mode``), so that the config's checks across options see the run's values, not the
+    defaults."""
     from sonogym.envs.registry import get_task
 
     own_flags = own_flags or {}
@@ -94,8 +124,14 @@ def parse_env_options(
             out[key] = tuple(parse_value(v) for v in value.split(","))
             continue
         out[key] = parse_value(value)
+        if isinstance(default, bool) and not isinstance(out[key], bool):
+            raise ValueError(
+                f"--env-option {key}={value}: {key} is a switch; write true or false "
+                f"(default {str(default).lower()})"
+            )
         number = (int, float)
-        if isinstance(default, number) and not isinstance(out[key], number):
+        numeric = isinstance(out[key], number) and not isinstance(out[key], bool)
+        if isinstance(default, number) and not isinstance(default, bool) and not numeric:
             raise ValueError(f"--env-option {key}={value}: expected a number (default {default!r})")
     base = dict(flag_values or {})
     try:  # the config's own checks (finite numbers, integers, ranges, options that go together)

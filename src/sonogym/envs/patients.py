@@ -3,9 +3,11 @@ them, ``"DIR@7"``) into Patients, shared between envs of one process."""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import weakref
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from sonogym.anatomy import (
@@ -37,7 +39,33 @@ _live: weakref.WeakValueDictionary[tuple[int | str, float], Patient] = weakref.W
 _models: OrderedDict[tuple[int | str, float], PatientModel] = OrderedDict()
 
 
+#: Who is told of each patient an env build loads (``patient_progress``); nobody by default.
+_on_loaded: contextvars.ContextVar[Callable[[int | str], None] | None] = contextvars.ContextVar(
+    "sonogym_patient_progress", default=None
+)
+
+
+@contextlib.contextmanager
+def patient_progress(callback: Callable[[int | str], None]) -> Iterator[None]:
+    """Within the block, ``callback(spec)`` is called after each patient is loaded (built,
+    read from the cache or shared), e.g. to show a command's progress through an env's
+    patients; the simulator itself prints nothing."""
+    token = _on_loaded.set(callback)
+    try:
+        yield
+    finally:
+        _on_loaded.reset(token)
+
+
 def _load(spec: int | str, spacing: float) -> Patient:
+    patient = _load_or_share(spec, spacing)
+    callback = _on_loaded.get()
+    if callback is not None:
+        callback(spec)
+    return patient
+
+
+def _load_or_share(spec: int | str, spacing: float) -> Patient:
     key = (spec, spacing)
     patient = _live.get(key)
     if patient is not None:

@@ -38,11 +38,15 @@ from sonogym.runs import atomic_write_bytes
 FORMAT = 1
 
 
-def run_episodes(env, policy, trials: int, seed: int, task: str) -> dict[str, Any]:
+def run_episodes(
+    env, policy, trials: int, seed: int, task: str, progress: Any = None
+) -> dict[str, Any]:
     """``trials`` episodes of ``policy`` in ``env`` (batches of ``env.num_envs`` fixed-length
     episodes from ``env.reset(seed=seed)``): {"metrics": {metric: (trials,) array},
     "track": (trials, T + 1, D) array} with the task's tracked point (``TaskSpec.track``) from
-    each start state to its last state."""
+    each start state to its last state. ``progress``: a progress display
+    (``sonogym.progress.progress_bar`` over ``episode_steps(env, trials)``), advanced each env
+    step and told the episodes done after each batch."""
     track = get_task(task).track
     n, T = env.num_envs, env.episode_length
     batches = math.ceil(trials / n)
@@ -65,10 +69,19 @@ def run_episodes(env, policy, trials: int, seed: int, task: str) -> dict[str, An
             for k, v in final.items():
                 if k != "env_ids":
                     collected.setdefault(k, []).append(v.detach().float().cpu()[order])
+            if progress is not None:
+                progress.set_postfix(**{"episodes done": f"{min((b + 1) * n, trials)}/{trials}"})
+        if progress is not None:
+            progress.update(1)
     return {
         "metrics": {k: torch.cat(v)[:trials].numpy() for k, v in collected.items()},
         "track": paths[:trials].numpy(),
     }
+
+
+def episode_steps(env, trials: int) -> int:
+    """The env steps ``run_episodes`` takes for ``trials`` episodes (whole batches)."""
+    return math.ceil(trials / env.num_envs) * env.episode_length
 
 
 def log_path(run: str | Path, protocol: str) -> Path:

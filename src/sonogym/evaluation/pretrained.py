@@ -17,7 +17,9 @@ episode log as ``sonogym eval --run``, written to ``DIR``); ``--pretrained list`
 from __future__ import annotations
 
 import json
-import shutil
+import os
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -85,21 +87,37 @@ def listing(root: str | Path | None = None) -> str:
     return "\n".join(lines) if lines else "no pretrained policies ship with this sonogym"
 
 
+#: The files ``export_pretrained`` writes into a policy's folder: ``force`` replaces these and
+#: nothing else.
+EXPORTED = ("config.json", WEIGHTS, CARD, "model_card.md")
+
+
 def export_pretrained(
     run: str | Path,
     name: str,
-    root: str | Path | None = None,
+    root: str | Path,
     checkpoint: str | Path | None = None,
     notes: str = "",
+    force: bool = False,
+    log: Callable[[str], None] = lambda message: None,
+    warn: Callable[[str], None] = warnings.warn,
 ) -> Path:
-    """Write run ``run``'s policy as shipped policy ``name`` under ``root``: its config, the
-    acting weights of ``checkpoint`` (default: the newest readable) and a model card from the
-    run's config, its ``checkpoints/times.json`` and the evaluations in its folder
-    (``eval*.json`` of that checkpoint). Replaces an earlier export of the same name."""
+    """Write run ``run``'s policy as shipped policy ``name`` under ``root`` (the package's own
+    folder is ``PRETRAINED_DIR``; it is never a default): its config, the acting weights of
+    ``checkpoint`` (default: the newest readable) and a model card from the run's config, its
+    ``checkpoints/times.json`` and the evaluations in its folder (``eval*.json`` of that
+    checkpoint), saying how far the run got and which evaluations there are.
+
+    The run, the checkpoint and the destination are checked before anything is written. A
+    folder ``root/name`` that already holds a policy is refused unless ``force``, which
+    replaces only the files export writes (``EXPORTED``); any other file there is kept and
+    named through ``log``. ``warn`` is told when the checkpoint falls short of the run's
+    planned steps or has no evaluation. A failed export leaves nothing it made."""
     import re
 
     from sonogym.agents.checkpoint import RL_RUN, export_acting_weights, run_config
     from sonogym.agents.train import read_times
+    from sonogym.outputs import OutputPathError, check_folder, undo_on_failure
 
     if not re.fullmatch(r"[a-z0-9][a-z0-9_-]*", name):
         raise ValueError(f"name {name!r}: use lower-case letters, digits, '_' and '-'")
@@ -108,23 +126,57 @@ def export_pretrained(
     if checkpoint is None:
         checkpoint = RunFolder(run, RL_RUN).require_checkpoint().path
     checkpoint = Path(checkpoint)
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"checkpoint {checkpoint} not found")
     step = RL_RUN.step_of(checkpoint)
-    dest = Path(PRETRAINED_DIR if root is None else root) / name
-    tmp = dest.with_name(f".{name}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    export_acting_weights(checkpoint, tmp / WEIGHTS)
+    dest = Path(root) / name
+    check_folder(dest, "pretrained policy folder", "give --to a folder you can write to")
+    present = [f for f in EXPORTED if (dest / f).exists()]
+    if present and not force:
+        raise OutputPathError(
+            f"{dest} already holds pretrained policy {name!r} ({', '.join(present)}); pass "
+            "--force to replace those files (other files there are kept), or give another "
+            "--name or --to"
+        )
+    kept = sorted(p.name for p in dest.iterdir() if p.name not in EXPORTED) if dest.is_dir() else []
+    times = read_times(run / "checkpoints").get(step, {}) if step is not None else {}
     shipped_cfg = dict(cfg)
     if cfg.get("init_from"):
         shipped_cfg["init_from"] = _source(cfg["init_from"])  # names, not this machine's paths
-    atomic_write_json(tmp / "config.json", shipped_cfg)
-    times = read_times(run / "checkpoints").get(step, {}) if step is not None else {}
     card = _card(name, shipped_cfg, run, checkpoint, step, times, notes)
-    atomic_write_json(tmp / CARD, card)
-    atomic_write_text(tmp / "model_card.md", card_markdown(card))
-    shutil.rmtree(dest, ignore_errors=True)
-    tmp.rename(dest)
+    saved = RunFolder(run, RL_RUN).checkpoints()
+    card["run_reached_steps_per_env"] = saved[-1][0] if saved else step
+    tmp = dest.with_name(f".{name}.partial{os.getpid()}")
+    with undo_on_failure(tmp, dest):
+        tmp.mkdir(parents=True)
+        export_acting_weights(checkpoint, tmp / WEIGHTS)
+        atomic_write_json(tmp / "config.json", shipped_cfg)
+        atomic_write_json(tmp / CARD, card)
+        atomic_write_text(tmp / "model_card.md", card_markdown(card))
+        dest.mkdir(exist_ok=True)
+        for f in EXPORTED:
+            os.replace(tmp / f, dest / f)
+        tmp.rmdir()
+    if kept:
+        log(f"kept {', '.join(kept)} in {dest} (sonogym export writes only {', '.join(EXPORTED)})")
+    for line in _warnings(run, card):
+        warn(line)
     return dest
+
+
+def _warnings(run: Path, card: dict[str, Any]) -> list[str]:
+    """What a user should know about an exported policy: a checkpoint short of the run's
+    planned steps, a checkpoint never evaluated."""
+    out = []
+    progress = _progress_text(card)
+    if "planned" in progress and "all" not in progress:
+        out.append(f"{card['checkpoint']} of {run} is at {progress.removeprefix(', ')}")
+    if not card["evaluations"]:
+        out.append(
+            f"{card['checkpoint']} of {run} has no evaluation (eval*.json), so the model card "
+            f"lists none; run sonogym eval --run {run} and export again to include one"
+        )
+    return out
 
 
 def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[str, Any]:
@@ -158,6 +210,8 @@ def _card(name, cfg, run: Path, checkpoint: Path, step, times, notes) -> dict[st
         "imaging_randomization": env.get("imaging_randomization", False),
         "num_envs": tc.get("num_envs"),
         "steps_per_env": steps,
+        # how far the run got: the steps it was started for (fewer done: it stopped early)
+        "planned_steps_per_env": cfg.get("steps"),
         "steps_total": None if steps is None else steps * int(tc.get("num_envs") or 1),
         "cpu_minutes": round(times["cpu_s"] / 60, 1) if "cpu_s" in times else None,
         "wall_minutes": round(times["wall_s"] / 60, 1) if "wall_s" in times else None,
@@ -204,6 +258,19 @@ def _headline(task: str, evals: dict) -> str:
     return "; ".join(parts)
 
 
+def _progress_text(card: dict[str, Any]) -> str:
+    """How far the run got, for the card: the checkpoint's share of the planned steps and, short
+    of them, whether the run stopped there or went on."""
+    done, planned = card.get("steps_per_env"), card.get("planned_steps_per_env")
+    if done is None or not planned:
+        return ""
+    if done >= planned:
+        return f", all {planned} planned"
+    reached = card.get("run_reached_steps_per_env") or done
+    where = "the run stopped there" if reached <= done else f"the run went on to {reached}"
+    return f", {100 * done / planned:.0f} % of the {planned} planned ({where})"
+
+
 def card_markdown(card: dict[str, Any]) -> str:
     """The model card as Markdown."""
     lines = [
@@ -213,9 +280,9 @@ def card_markdown(card: dict[str, Any]) -> str:
         f"observation: {card.get('obs_mode') or 'the task default'}; network: {card.get('net')}",
         f"- trained on patients {card['training_patients']}, imaging randomisation "
         f"{'on' if card['imaging_randomization'] else 'off'}, {card.get('num_envs')} envs",
-        f"- {card.get('steps_per_env')} env steps per env ({card.get('steps_total')} in all), "
-        f"{card.get('cpu_minutes')} CPU minutes ({card.get('wall_minutes')} wall); checkpoint "
-        f"{card['checkpoint']}",
+        f"- {card.get('steps_per_env')} env steps per env ({card.get('steps_total')} in all)"
+        f"{_progress_text(card)}, {card.get('cpu_minutes')} CPU minutes "
+        f"({card.get('wall_minutes')} wall); checkpoint {card['checkpoint']}",
         *_init_from_line(card.get("init_from")),
         f"- evaluate: `sonogym eval --pretrained {card['name']} --out DIR` (add `--patients` "
         "for your own subjects)",
@@ -223,6 +290,12 @@ def card_markdown(card: dict[str, Any]) -> str:
         "## Evaluations",
         "",
     ]
+    if not card["evaluations"]:
+        lines += [
+            "None: this checkpoint had not been evaluated when it was exported (`sonogym eval "
+            "--run RUN` writes an evaluation; export again to include it).",
+            "",
+        ]
     for proto, e in card["evaluations"].items():
         drawn = [f"{e['trials']} episodes"]  # and what draws the same starts again
         drawn += [f"seed {e['seed']}"] if e.get("seed") is not None else []

@@ -21,8 +21,10 @@ that cannot be written to). That the folder takes them is checked before any epi
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +63,7 @@ def evaluate_run(
     safety_filter: dict[str, Any] | None = None,
     name: str | None = None,
     out: str | Path | None = None,
+    progress: bool = False,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
@@ -80,7 +83,8 @@ def evaluate_run(
     Writes ``eval.json`` / ``eval.md`` (``eval-<protocol>.*`` for other than ``idt``), the
     per-episode log ``episodes/<protocol>.npz`` and, with ``plot``, the trajectory figure
     ``trajectories-<protocol>.png`` into ``out`` (default: the run folder), which must be
-    writable: checked before the episodes run.
+    writable: checked before the episodes run. ``progress``: show the env's patients loading
+    and the episodes on stderr.
     """
     from sonogym.envs.identity import identity
     from sonogym.envs.registry import get_task
@@ -117,7 +121,7 @@ def evaluate_run(
     envs = min(trials, envs or DEFAULT_ENVS)
     episodes = run_controllers(
         trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint,
-        safety_filter=filt,
+        safety_filter=filt, progress=progress,
     )  # fmt: skip
     results = {
         c: {
@@ -200,23 +204,16 @@ def distribution(task: str, metrics: dict[str, np.ndarray]) -> dict[str, dict[st
 
 
 def check_writable(folder: Path, name: str) -> Path:
-    """``folder`` (created if absent) after checking that the evaluation's files can be
-    written there (a test file in it and in its ``episodes/``), so that a read-only run folder
-    is refused before its episodes run, not after."""
-    import tempfile
-
+    """``folder`` after checking that the evaluation's files can be written there and in its
+    ``episodes/`` (``sonogym.outputs.check_folder``), so that a read-only run folder or a file
+    given as the folder is refused before the episodes run, not after. Creates nothing: the
+    folders are made when the files are written."""
     from sonogym.evaluation.episodes import log_path
+    from sonogym.outputs import check_folder
 
+    fix = "give --out FOLDER, a folder you can write to, for the table, episode log and figure"
     for where in (folder, log_path(folder, name).parent):
-        try:
-            where.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryFile(dir=where):
-                pass
-        except OSError as e:
-            raise ValueError(
-                f"cannot write the evaluation into {where} ({e.strerror or e}); give --out "
-                "FOLDER (evaluate_run(out=...)) for its table, episode log and figure"
-            ) from None
+        check_folder(where, "cannot write the evaluation into", fix)
     return folder
 
 
@@ -292,25 +289,52 @@ def run_controllers(
     controllers: tuple[str, ...] = CONTROLLERS,
     checkpoint: str | Path | None = None,
     safety_filter: dict[str, Any] | None = None,
+    progress: bool = False,
 ) -> dict[str, dict[str, Any]]:
     """Run ``trials`` episodes per controller in the run's env (with ``env_overrides``), all
     from the same seeded starts: {controller: {"metrics": {metric: (trials,) array},
-    "track": (trials, T + 1, D) array}} (see ``episodes.run_episodes``). Nothing is written."""
+    "track": (trials, T + 1, D) array}} (see ``episodes.run_episodes``). Nothing is written.
+    ``progress``: show the env's patients loading and each controller's episodes on stderr
+    (``sonogym.progress``)."""
     from sonogym.envs.registry import make_vec
-    from sonogym.evaluation.episodes import run_episodes
+    from sonogym.evaluation.episodes import episode_steps, run_episodes
+    from sonogym.progress import progress_bar
 
     trained = run if isinstance(run, TrainedRun) else load_run(run)
     env_kwargs = {**trained.evaluation_env_kwargs(env_overrides), "device": device}
-    env = make_vec(trained.task, min(trials, envs or DEFAULT_ENVS), **env_kwargs)
-    out = {
-        name: run_episodes(
-            env, controller_policy(name, env, trained, seed, device, checkpoint, safety_filter),
-            trials, seed, trained.task,
-        )
-        for name in controllers
-    }  # fmt: skip
+    with showing_patients(trained.task, env_kwargs, progress):
+        env = make_vec(trained.task, min(trials, envs or DEFAULT_ENVS), **env_kwargs)
+    out = {}
+    for name in controllers:
+        policy = controller_policy(name, env, trained, seed, device, checkpoint, safety_filter)
+        bar = progress_bar(episode_steps(env, trials), f"{name} ({trials} episodes)",
+                           unit="step", enabled=progress)  # fmt: skip
+        out[name] = run_episodes(env, policy, trials, seed, trained.task, bar)
+        bar.close()
     env.close()
     return out
+
+
+@contextlib.contextmanager
+def showing_patients(task: str, env_kwargs: dict[str, Any], enabled: bool = True) -> Iterator[None]:
+    """Around an env's build: a line naming how many patients it loads, then a progress
+    display through them on stderr (building a phantom the first time takes seconds; after that
+    it is read from the cache)."""
+    from sonogym.envs.base import make_config
+    from sonogym.envs.patients import patient_progress
+    from sonogym.envs.registry import get_task
+    from sonogym.progress import announce, progress_bar
+
+    if not enabled:
+        yield
+        return
+    patients = make_config(get_task(task).config_cls, env_kwargs).patients
+    n = len(patients) if isinstance(patients, list | tuple) else 1
+    announce(f"building the {task} env: {n} patient{'s' if n != 1 else ''} to load")
+    bar = progress_bar(n, f"{task} env: patients", unit="patient")
+    with patient_progress(lambda spec: bar.update(1)):
+        yield
+    bar.close()
 
 
 def format_table(

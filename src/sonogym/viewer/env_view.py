@@ -124,16 +124,22 @@ def view_env(
     steps: int | None = None,
     seed: int = 0,
     log: Callable[[str], None] = print,
+    progress: bool = False,
 ) -> ViewResult:
     """Run ``choice``'s policy in one env of ``task`` (env ``options``) for ``steps`` steps
     (default: ``episode_length - 1``, one episode up to its last state) from ``reset(seed)``,
-    logging env 0 to ``rec`` (see the module doc)."""
+    logging env 0 to ``rec`` (see the module doc). ``progress``: show the env's patients
+    loading and the steps on stderr (``sonogym.progress``)."""
+    from sonogym.evaluation.rl_eval import showing_patients
+    from sonogym.progress import progress_bar
+
     spec = get_task(task)
     cfg = make_config(spec.config_cls, options)
     log(f"{task}: loading patient {cfg.patients[0]} and meshing its labels")
     patient = resolve_patients([cfg.patients[0]], cfg.phantom_spacing)[0]
     meshes = patient_surfaces(patient.labels.numpy(), patient.affine, cfg.target_vertebra)
-    env = make_vec(task, 1, **options)  # shares the loaded patient while it is held
+    with showing_patients(task, options, progress):
+        env = make_vec(task, 1, **options)  # shares the loaded patient while it is held
     plan = None
     if hasattr(env.scene, "tip_pos"):  # a drill: its planned trajectory
         plan = patient.landmarks.trajectory(cfg.target_vertebra, cfg.side)
@@ -165,7 +171,9 @@ def view_env(
     rec.send_blueprint(draw.blueprint(scene.image_paths, list(series), scene.eye()))
     result = ViewResult(steps + 1, scene.image_paths, list(series))
     metric_scale = {m.key: m.scale for m in spec.metrics}
+    bar = progress_bar(steps, f"{task} view", unit="step", enabled=progress)
     for step in rollout(env, policy, steps, reset=False, obs=obs, info=info):
+        bar.update(1)
         draw.set_step(rec, step.t + 1)
         ended = bool(step.done[0])
         if ended:
@@ -185,6 +193,7 @@ def view_env(
         draw.log_scalars(rec, values)
         scene.log_state(new_episode=ended)
         result.last = {k: float(v) for k, v in metrics.items()}
+    bar.close()
     env.close()
     return result
 

@@ -43,6 +43,12 @@ POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
 def load_run_log(run: str | Path, protocol: str) -> EpisodeLog:
     """The run's episode log of ``protocol``, naming the logs it has when there is none."""
     path = log_path(run, protocol)
+    run = Path(run)
+    if not (run / "config.json").is_file() and not (run / "episodes").is_dir():
+        raise FileNotFoundError(
+            f"{run} is not a run folder (no config.json, no episodes/): give --run a folder "
+            "that sonogym train or il-train wrote and sonogym eval evaluated"
+        )
     if not path.is_file():
         have = sorted(p.stem for p in (Path(run) / "episodes").glob("*.npz"))
         raise FileNotFoundError(

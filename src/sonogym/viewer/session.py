@@ -12,6 +12,8 @@ from urllib.parse import quote
 
 import rerun as rr
 
+from sonogym.outputs import OutputPathError
+
 APPLICATION_ID = "sonogym"
 WEB_PORT = 9090  # Rerun's defaults
 GRPC_PORT = 9876
@@ -50,12 +52,30 @@ def open_session(
         path = Path(save)
         if path.suffix != ".rrd":
             raise ValueError(f"{path}: a Rerun recording is saved as an .rrd file")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rec.save(path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            rec.save(path)
+        except (OSError, RuntimeError) as e:  # Rerun raises RuntimeError for a file it cannot make
+            raise OutputPathError(
+                f"cannot write the view into {path.parent} ({e}); give --save a file in a "
+                "folder you can write to"
+            ) from None
         return Session(rec, path=path)
     uri = rec.serve_grpc(grpc_port=grpc_port)
     rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
     return Session(rec, url=f"http://localhost:{web_port}/?url={quote(uri, safe='')}")
+
+
+def is_sonogym_recording(path: str | Path) -> bool:
+    """Whether ``path`` is a Rerun recording that sonogym wrote: an .rrd file (magic ``RRF``)
+    whose first message names the application ``sonogym``."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    app = APPLICATION_ID.encode()
+    return head.startswith(b"RRF") and bytes([0x0A, len(app)]) + app in head
 
 
 def serve_until_interrupted(session: Session, log: Callable[[str], None] = print) -> None:

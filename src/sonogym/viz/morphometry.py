@@ -209,14 +209,59 @@ def save_figure(phantom, real, values: tuple[dict, dict], bounds: dict, path: Pa
     return path
 
 
-def update_doc(doc: Path, table: str, note: str) -> None:
-    """Replace the text between ``DOC_BEGIN`` and ``DOC_END`` in ``doc`` with note + table."""
-    text = doc.read_text()
-    if DOC_BEGIN not in text or DOC_END not in text:
+def check_doc(doc: Path) -> str:
+    """The text of ``doc``, a markdown file that holds both morphometry marks (``DOC_BEGIN``,
+    ``DOC_END``, in that order) and can be rewritten; ``ValueError`` naming what is wrong."""
+    import os
+
+    if not doc.is_file():
+        raise FileNotFoundError(f"--doc {doc} does not exist or is not a file")
+    try:
+        text = doc.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"--doc {doc} cannot be read as text ({e})") from None
+    begin, end = text.find(DOC_BEGIN), text.find(DOC_END)
+    if begin < 0 or end < begin:
         raise ValueError(
-            f"{doc} has no morphometry marks; add the lines {DOC_BEGIN!r} and {DOC_END!r} "
+            f"--doc {doc} has no morphometry marks; add the lines {DOC_BEGIN!r} and {DOC_END!r} "
             "where the table belongs"
         )
+    if not os.access(doc, os.W_OK):
+        raise ValueError(f"--doc {doc} cannot be written; give a file you can write to")
+    return text
+
+
+def check_report(
+    subject: str | Path, seeds: Sequence[int], spacing: float, subject_spacing: float,
+    doc: str | Path | None = None,
+) -> None:  # fmt: skip
+    """Refuse, before anything is measured, what ``write_report`` would refuse late: no
+    phantom seeds, a phantom or subject voxel size out of range (metres), a subject that is
+    no folder, a ``doc`` without the marks."""
+    from sonogym.anatomy import PhantomParams
+    from sonogym.anatomy.totalseg import SPACING_RANGE
+
+    if len(seeds) < 1:
+        raise ValueError("the population needs at least one phantom seed")
+    try:
+        PhantomParams(spacing=spacing)
+    except ValueError as e:
+        raise ValueError(f"--spacing {spacing * 1e3:g} mm: {e}") from None
+    lo, hi = SPACING_RANGE
+    if not lo <= subject_spacing <= hi:
+        raise ValueError(
+            f"--subject-spacing {subject_spacing * 1e3:g} mm is outside {lo * 1e3:g}-"
+            f"{hi * 1e3:g} mm"
+        )
+    if not Path(subject).is_dir():
+        raise FileNotFoundError(f"--subject {subject} does not exist or is not a folder")
+    if doc is not None:
+        check_doc(Path(doc))
+
+
+def update_doc(doc: Path, table: str, note: str) -> None:
+    """Replace the text between ``DOC_BEGIN`` and ``DOC_END`` in ``doc`` with note + table."""
+    text = check_doc(doc)
     head, rest = text.split(DOC_BEGIN, 1)
     _, tail = rest.split(DOC_END, 1)
     doc.write_text(f"{head}{DOC_BEGIN}\n{note}\n\n{table}{DOC_END}{tail}")
@@ -235,15 +280,18 @@ def write_report(
 ) -> dict[str, Path]:
     """What ``sonogym morphometry`` does: measure the real subject and the phantom population,
     write ``population.json``, ``morphometry.md`` and ``comparison.png`` to ``out`` (and the
-    table into ``doc`` between its marks). Returns the written paths."""
+    table into ``doc`` between its marks). Returns the written paths. The options are checked
+    (``check_report``) before anything is measured; ``out`` is made when the results are
+    written."""
     from sonogym.anatomy import PhantomParams, load_phantom, load_totalsegmentator
     from sonogym.anatomy.phantom import GENERATOR_VERSION
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    check_report(subject, seeds, spacing, subject_spacing, doc)
+    log(f"measuring the real subject {Path(subject).name} at {subject_spacing * 1e3:g} mm")
     real = load_totalsegmentator(subject, spacing=subject_spacing, target="L4")
     m_real = M.measure(real)
-    log(f"measured {real.name}")
+    log(f"measured {real.name}; building and measuring {len(seeds)} phantoms")
     rows = measure_population(list(seeds), spacing, log)
     bounds = population_bounds(rows)
     pop = {
@@ -256,6 +304,7 @@ def write_report(
         "rows": {str(k): v for k, v in rows.items()},
     }
     paths = {"population": out / "population.json"}
+    out.mkdir(parents=True, exist_ok=True)
     paths["population"].write_text(json.dumps(pop, indent=1) + "\n")
     table = table_markdown(m_real.flat(), bounds, len(rows))
     bad = outside(m_real.flat(), bounds)

@@ -1,6 +1,6 @@
 """How well the navigation observation locates the goal: a supervised probe of what an image
 policy could learn from the same training phantoms, given the answer as a label. The figures
-in docs/envs.md ("How much of the goal the image shows") come from
+in benchmarks/README.md ("Navigation: how much of the goal the image shows") come from
 
     python benchmarks/navigation_observability.py [--history 10]
 

@@ -23,10 +23,11 @@ episode's first image until the episode is that old; kept at 8 bits, steps of 1/
 ``heading`` (4,): (cos, sin) of the reached yaw now and then; ``motion`` (2,) m: the reached
 probe's displacement in the frontal plane (x, z of {P}) since the remembered image. Why: one
 transverse image locates the goal hardly better than "near the goal" (benchmarks/README.md,
-"Navigation: how much of the goal the image shows"); given also the image 30 steps back and the motion since, a
-supervised probe's median error near the goal falls from ~12 mm to 9.5 mm on held-out phantoms
-and 8.6 mm on the real subject. Everything it adds is what the arm's own pose tracking and the
-images already seen tell; nothing of where the goal lies.
+"Navigation: how much of the goal the image shows"); given also the image 30 steps back and
+the motion since, a supervised probe's median error near the goal falls from ~12 mm to 9.5 mm
+on held-out phantoms and 8.6 mm on the real subject (task version 1). Everything it adds is
+what the arm's own pose tracking and the images already seen tell; nothing of where the goal
+lies.
 ``"us_scan"`` (not in the paper): ``us_memory`` with the caudal end of the scan as well. Dict
 ``image`` (3, 200, 150): ``us_memory``'s two images and the image taken where the reached probe
 was most caudal (lowest z of {P}) so far this episode (8 bits); ``heading`` (6,): ``us_memory``'s

@@ -12,7 +12,6 @@ import nibabel as nib
 import numpy as np
 import pytest
 import torch
-from scipy import ndimage
 
 from sonogym.anatomy import LandmarkError, Patient, PatientError, load_totalsegmentator
 from sonogym.anatomy import totalseg as TS
@@ -251,11 +250,19 @@ def test_non_utf8_folder_name(subj, tmp_path):
     )
 
 
+def _body_only(m):
+    """The front half of a vertebra mask (RAS array): its body without the posterior arch."""
+    ys = np.flatnonzero(m.any((0, 2)))
+    out = m.copy()
+    out[:, : (ys[0] + ys[-1]) // 2 + 1] = 0
+    return out
+
+
 def test_env_patients_name_the_folder(subj):
-    # L4 present and adult-sized but solid (no vertebral ring): its frame cannot be computed.
+    # L4 present and adult-sized but its body alone (no canal, no arch): no frame can be placed.
     f = subj / "segmentations" / "vertebrae_L4.nii.gz"
-    _rewrite(f, lambda m: ndimage.binary_fill_holes(m > 0, np.ones((3, 3, 1))).astype(np.uint8))
-    with pytest.raises(LandmarkError, match=rf"patient folder {subj}.*L4.*vertebral ring"):
+    _rewrite(f, _body_only)
+    with pytest.raises(LandmarkError, match=rf"patient folder {subj}.*L4.*posterior arch"):
         resolve_patients([subj], 0.003)
     with pytest.raises(FileNotFoundError, match=str(subj / "nope")):
         resolve_patients([subj / "nope"], 0.003)

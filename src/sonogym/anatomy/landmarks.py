@@ -19,8 +19,27 @@ at 0.5-3 mm. Rules (ultrasound_physics.md §4-5):
     3. the empty region behind the body inside the projection's convex hull (an arch open wider
        than the closings bridge).
   A hole counts only behind the vertebra's centroid, within 15 mm of it laterally, at least
-  15 mm^2 and 4 mm across both ways. A vertebra with none of these (its mask lacks the posterior
-  arch or fills the canal) is refused, as is one touching the field of view's edge.
+  15 mm^2 and 4 mm across both ways. The canal found counts only where its centre lies within
+  ``CANAL_MIDLINE_TOLERANCE`` plus one voxel of the vertebra's midsagittal plane, it is at least
+  ``CANAL_MIN_WIDTH`` wide and at most ``CANAL_MAX_ASPECT`` times deeper than wide; else it is a
+  notch between the processes, or the slit a mask that fills the canal leaves of it.
+* Midsagittal plane: the plane through s, within +-``MIRROR_SPAN`` of the patient's anterior,
+  about which the vertebra's axial projection best matches its mirror image.
+* Frame from the bone, for L1-L5 where the mask shows no canal (a canal the mask fills or
+  narrows to a few voxels, and no spinal_canal or spinal_cord label): the body is the anterior
+  mass. Along the midsagittal plane's anterior axis, the area of the vertebra's cross-section
+  (within 30 mm of the plane) rises to the body's, falls where the body ends and rises again
+  over the pedicles and the arch; the body's posterior wall is where it falls below 75 % of the
+  largest so far, or halfway down to the trough between body and arch where that trough is
+  shallower. The origin is the centroid of the voxels in front of the wall, within 30 mm of the
+  plane. The canal is estimated on the plane behind the wall, half as wide as the body and 0.46
+  as deep (adult lumbar proportions); a runs from its centre toward the body centroid, as
+  above. ``VertebraFrame.canal_source`` is then "bone", and the trajectory planner reads the
+  estimated canal (its elliptic cylinder along s) as not bone.
+* Refused (``Landmarks.vertebra`` raises a ``LandmarkError`` naming the level and why): a
+  vertebra absent from the label map, one touching the field of view's edge (the scan cuts
+  it), and one whose mask shows no canal and has no posterior elements behind its body (under
+  15 % of its voxels: the mask lacks its posterior arch).
 * Pedicle centre: centroid of the vertebra's voxels lateral to the canal, within the canal's
   middle half in the anterior direction (the bony bridge between body and posterior arch).
 * Trajectory: the straight path, among those the anatomical rules allow, that keeps the widest
@@ -75,6 +94,28 @@ _CANAL_LABELS = (L.SPINAL_CANAL, L.LABEL_IDS["spinal_cord"])
 #: to twice the radius are bridged (ground-truth masks of thin laminae, partial volume).
 RING_GAP_CLOSING = (0.0, 0.0015, 0.003, 0.0045, 0.006)
 
+#: Rotations about s (deg, each way from the patient's anterior) searched for a vertebra's
+#: midsagittal plane (its plane of mirror symmetry).
+MIRROR_SPAN = 30.0
+#: A canal found in the mask whose centre lies further from the vertebra's midsagittal plane than
+#: this (m) plus one voxel is not the spinal canal (a notch between the processes, what a mask
+#: that fills the canal leaves of it).
+CANAL_MIDLINE_TOLERANCE = 0.0015
+#: A canal found in the mask narrower than this (m, side to side), or deeper than
+#: ``CANAL_MAX_ASPECT`` times its width, is the slit a mask that fills the canal leaves of it (an
+#: adult lumbar canal is 15-30 mm wide and wider than deep): the bone gives the frame instead.
+CANAL_MIN_WIDTH = 0.005
+CANAL_MAX_ASPECT = 1.5
+#: The body's posterior wall: where the vertebra's cross-section, walking back from the body,
+#: falls below this share of its largest so far.
+_BODY_WALL_DROP = 0.75
+#: Least share of a vertebra's voxels behind its body for a frame from the bone alone.
+_MIN_POSTERIOR_SHARE = 0.15
+#: Canal estimated from the body where the mask shows none: half-width and half-depth as shares
+#: of the body's (adult lumbar proportions: the canal half as wide as the body, 0.46 as deep).
+_CANAL_WIDTH_SHARE = 0.5
+_CANAL_DEPTH_SHARE = 0.46
+
 #: Allowed medial angle, degrees relative to the 5 deg x level rule (more medial positive).
 MEDIAL_TOLERANCE = (-5.0, 10.0)
 #: Allowed sagittal angle, +-degrees from parallel to the superior endplate.
@@ -103,6 +144,10 @@ class VertebraFrame:
     canal_centre: np.ndarray
     canal_half_width: float  # m
     canal_half_depth: float  # m
+    #: where the canal comes from: "ring" (the empty region the vertebral ring encloses),
+    #: "label" (spinal_canal / spinal_cord), "hull" (inside an open arch's convex hull), or
+    #: "bone" (no canal in the mask: estimated from the body, module docstring)
+    canal_source: str = "ring"
 
     @property
     def lateral(self) -> np.ndarray:
@@ -228,7 +273,8 @@ class Landmarks:
         frames = {lv: second.get(lv, first[lv]) for lv in first if lv in L.LUMBAR_VERTEBRAE}
         refused.update({lv: w for lv, w in why.items() if lv in L.LUMBAR_VERTEBRAE})
         for lv, frame in frames.items():
-            bone = _BoneField(lab_np, L.VERTEBRA_IDS[lv], idx[lv], org, sp)
+            estimated = frame if frame.canal_source == "bone" else None
+            bone = _BoneField(lab_np, L.VERTEBRA_IDS[lv], idx[lv], org, sp, estimated)
             for side in ("left", "right"):
                 t = plan_corridor(lv, side, frame, pts[lv], bone)
                 if isinstance(t, str):
@@ -291,7 +337,9 @@ class _BoneField:
     closed (mask noise of rough ground truth and model output, not missing bone), so they
     neither break a path nor narrow a corridor; ``inside(raw=True)`` reads the mask as given."""
 
-    def __init__(self, labels: np.ndarray, label: int, idx: np.ndarray, origin, spacing) -> None:
+    def __init__(
+        self, labels: np.ndarray, label: int, idx: np.ndarray, origin, spacing, canal=None
+    ) -> None:
         pad = np.ceil(0.004 / spacing).astype(int) + 2
         lo = np.maximum(idx.min(0) - pad, 0)
         hi = np.minimum(idx.max(0) + pad + 1, labels.shape)
@@ -300,6 +348,15 @@ class _BoneField:
         self.label = label
         self.spacing = np.asarray(spacing, np.float64)
         self.origin = np.asarray(origin, np.float64) + lo * self.spacing
+        if canal is not None:
+            # A canal estimated from the bone (a frame of canal_source "bone"): the mask fills
+            # it, the planner must not enter it. Its elliptic cylinder along s is not bone.
+            axes = [self.origin[k] + self.spacing[k] * np.arange(raw.shape[k]) for k in range(3)]
+            rel = [(x - canal.canal_centre[k]).reshape([-1 if j == k else 1 for j in range(3)])
+                   for k, x in enumerate(axes)]  # fmt: skip
+            u, v = (sum(r * canal.rotation[k, c] for k, r in enumerate(rel)) for c in (0, 1))
+            hole = (u / canal.canal_half_width) ** 2 + (v / canal.canal_half_depth) ** 2 <= 1.0
+            raw, crop = raw & ~hole, crop & ~hole
         self.raw_grid, self.inside_grid = raw, crop
         half = 0.5 * float(self.spacing.min())
         # Outside voxels all get -half: only clearances inside the bone are ever asked for, and
@@ -408,7 +465,7 @@ def _canal(pts, centre, l_ax, a_ax, s_ax, h, label_pts):
     rot = np.stack([l_ax, a_ax, s_ax], 1)
     q_all = _project(pts, centre, rot)
     pad = int(np.ceil(max(RING_GAP_CLOSING) / h)) + 3
-    cells, projections = None, []
+    cells, projections, source = None, [], "ring"
     for slab in _CANAL_SLABS:
         q = q_all[np.abs(q_all[:, 2]) < slab]
         if len(q) < 10:
@@ -427,30 +484,164 @@ def _canal(pts, centre, l_ax, a_ax, s_ax, h, label_pts):
         q = q[(q[:, 1] < 0) & (q[:, 1] > -_CANAL_MAX_DEPTH)]
         cells = (np.unique(np.floor(q[:, :2] / h), axis=0) + 0.5) * h
         cells = cells if len(cells) * h * h >= _CANAL_LABEL_MIN_AREA else None
+        source = "label"
     if cells is None:
         region = _canal_from_hull(*projections[0], h)
         cells = projections[0][1][region] if region is not None else None
+        source = "hull"
     if cells is None:
         return None
     c = cells.mean(0)
     half_w = (np.ptp(cells[:, 0]) + h) / 2
     half_d = (np.ptp(cells[:, 1]) + h) / 2
-    return centre + c[0] * l_ax + c[1] * a_ax, half_w, half_d
+    return centre + c[0] * l_ax + c[1] * a_ax, half_w, half_d, source
+
+
+def _scan_axes(s_ax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a0, l0): the patient's anterior (+y) made perpendicular to ``s_ax``, and a0 x s."""
+    a0 = np.array([0.0, 1.0, 0.0]) - s_ax[1] * s_ax
+    a0 /= np.linalg.norm(a0)
+    return a0, np.cross(a0, s_ax)
+
+
+def _mirror_fit(q, w, theta: float, cell: float, half: int) -> tuple[float, float]:
+    """How well the axial projection ``q`` (N, 2; l, a in m, weights ``w``) matches its mirror
+    image about the best line at angle ``theta`` (rad, from a toward l): (score in [0, 1], the
+    line's lateral offset in m)."""
+    c, s = np.cos(theta), np.sin(theta)
+    iu = np.floor((q[:, 0] * c - q[:, 1] * s) / cell).astype(np.int64) + half
+    iv = np.floor((q[:, 0] * s + q[:, 1] * c) / cell).astype(np.int64) + half
+    n = 2 * half
+    grid = np.bincount(iu * n + iv, w, minlength=n * n).reshape(n, n)
+    grid = ndimage.gaussian_filter(grid, 1.0)
+    # Overlap with the mirror about u = offset, for every offset at once: the self-convolution
+    # along u (cells i and k - i pair up), summed over the rows.
+    f = np.fft.rfft(grid, 2 * n, axis=0)
+    conv = np.fft.irfft(f * f, 2 * n, axis=0).sum(1)
+    k = int(np.argmax(conv))
+    dk = 0.0
+    if 0 < k < len(conv) - 1:
+        y0, y1, y2 = conv[k - 1 : k + 2]
+        dk = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if y0 - 2 * y1 + y2 < 0 else 0.0
+    return float(conv[k] / (grid * grid).sum()), ((k + dk + 1) / 2 - half) * cell
+
+
+def _midline(pts, centroid, s_ax, h) -> tuple[np.ndarray, np.ndarray]:
+    """The vertebra's midsagittal plane, from the bone alone: (a point on it at the centroid's
+    level, its anterior axis, perpendicular to ``s_ax``). The plane is the one, among those
+    containing s within ``MIRROR_SPAN`` of the patient's anterior, about which the vertebra's
+    axial projection (on 2 mm cells) best matches its mirror image."""
+    a0, l0 = _scan_axes(s_ax)
+    cell = max(h, 0.002)
+    # The projection gathered on cells a quarter as wide, weighted by their voxel counts: the
+    # search costs the same at any voxel size.
+    ij = np.floor(_project(pts, centroid, np.stack([l0, a0], 1)) / (cell / 4)).astype(np.int64)
+    lo = ij.min(0)
+    ny = int(ij[:, 1].max() - lo[1]) + 1
+    w = np.bincount((ij[:, 0] - lo[0]) * ny + (ij[:, 1] - lo[1]))
+    occupied = np.flatnonzero(w)
+    q = (np.stack(np.divmod(occupied, ny), 1) + lo + 0.5) * (cell / 4)
+    w = w[occupied].astype(np.float64)
+    half = int(np.ceil(np.linalg.norm(q, axis=1).max() / cell)) + 4
+
+    def best(thetas):
+        scores = np.array([_mirror_fit(q, w, t, cell, half)[0] for t in thetas])
+        k = int(np.argmax(scores))
+        if not 0 < k < len(thetas) - 1 or scores[k - 1] - 2 * scores[k] + scores[k + 1] >= 0:
+            return thetas[k]
+        y0, y1, y2 = scores[k - 1 : k + 2]
+        return thetas[k] + 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) * (thetas[1] - thetas[0])
+
+    span = np.radians(MIRROR_SPAN)
+    coarse = best(np.arange(-span, span + 1e-9, np.radians(3.0)))
+    theta = best(coarse + np.radians(np.arange(-1.5, 1.5 + 1e-9, 0.5)))
+    offset = _mirror_fit(q, w, theta, cell, half)[1]
+    a_ax = np.cos(theta) * a0 + np.sin(theta) * l0
+    return centroid + offset * np.cross(a_ax, s_ax), a_ax
+
+
+def _body_wall(v: np.ndarray, h: float) -> float | None:
+    """Position along a (m) of the vertebral body's posterior wall, from ``v``, the a of the
+    vertebra's voxels near its midline. Walking back from the anterior end, the cross-section's
+    area rises to the body's, falls where the body ends and rises again over the pedicles and
+    the arch: the wall is where it first falls below ``_BODY_WALL_DROP`` of the largest so far,
+    or halfway down to the trough between body and arch where that is shallower (a canal
+    partly filled in the mask); None when the area never falls."""
+    top = v.max()
+    k = ((top - v) / h).astype(np.int64)  # bins from the anterior end, one voxel deep
+    area = ndimage.gaussian_filter1d(np.bincount(k).astype(np.float64), max(0.0015 / h, 0.5))
+    run = np.maximum.accumulate(area)
+    after = np.maximum.accumulate(area[::-1])[::-1]  # largest from each bin back
+    depth = np.minimum(run, after) - area
+    depth[run < 0.5 * area.max()] = 0.0  # not yet in the body
+    t = int(np.argmax(depth))
+    level = _BODY_WALL_DROP * run
+    if depth[t] > 0.05 * run[t]:  # a trough between body and arch
+        level = np.maximum(level, (run + area[t]) / 2)
+        peak = int(np.argmax(area[: t + 1]))
+    else:
+        peak = int(np.argmax(area))
+    below = np.flatnonzero(area[peak:] < level[peak:])
+    if not len(below):
+        return None
+    i = peak + int(below[0])  # > peak: the peak itself is never below
+    drop = area[i - 1] - area[i]
+    frac = np.clip((area[i - 1] - level[i]) / drop, 0.0, 1.0) if drop > 0 else 0.5
+    return float(top - (i - 0.5 + frac) * h)
+
+
+def _plausible_canal(canal, midline, h: float) -> bool:
+    """Whether a canal found in the mask can be the spinal canal: its centre near the
+    vertebra's midsagittal plane, and not a sliver the mask leaves of it."""
+    cc, hw, hd, _ = canal
+    point, a_ax = midline
+    off = (cc - point) - ((cc - point) @ a_ax) * a_ax
+    near = np.linalg.norm(off) <= CANAL_MIDLINE_TOLERANCE + h
+    return bool(near) and 2 * hw >= CANAL_MIN_WIDTH and hd <= CANAL_MAX_ASPECT * hw
+
+
+def _bone_frame(level, pts, centroid, s_ax, h, midline) -> VertebraFrame:
+    """The frame from the bone alone (no canal in the mask): a along the midsagittal plane, the
+    body the anterior mass in front of its posterior wall, the canal behind that wall on the
+    plane, sized from the body (module docstring)."""
+    point, a_mid = midline
+    l_mid = np.cross(a_mid, s_ax)
+    q = _project(pts, point, np.stack([l_mid, a_mid, s_ax], 1))
+    near = np.abs(q[:, 0]) < 0.03
+    wall = _body_wall(q[near, 1], h)
+    in_body = np.zeros(len(q), bool) if wall is None else near & (q[:, 1] > wall)
+    behind = 0.0 if wall is None else float((q[:, 1] < wall).mean())
+    if in_body.sum() < 10 or behind < _MIN_POSTERIOR_SHARE:
+        raise LandmarkError(
+            f"vertebra {level}: its mask has no vertebral ring around a spinal canal (no empty "
+            "region behind the body inside the arch or its convex hull), the label map has no "
+            "spinal_canal or spinal_cord there, and no posterior elements (pedicles, arch) lie "
+            "behind its body to place one from the bone: the mask lacks its posterior arch"
+        )
+    half_w = np.diff(np.percentile(q[in_body, 0], [2.0, 98.0]))[0] / 2
+    half_d = (q[in_body, 1].max() - wall + h / 2) / 2
+    hw, hd = _CANAL_WIDTH_SHARE * half_w, _CANAL_DEPTH_SHARE * half_d
+    cc = point + (wall - hd) * a_mid
+    body_c = pts[in_body].mean(0)
+    a_ax = body_c - cc
+    a_ax -= (a_ax @ s_ax) * s_ax
+    a_ax /= np.linalg.norm(a_ax)
+    rot = np.stack([np.cross(a_ax, s_ax), a_ax, s_ax], 1)
+    return VertebraFrame(level, body_c, rot, cc, float(hw), float(hd), "bone")
 
 
 def _vertebra_frame(level, pts, centroid, s_ax, h, label_pts) -> VertebraFrame:
-    a0 = np.array([0.0, 1.0, 0.0]) - s_ax[1] * s_ax
-    a0 /= np.linalg.norm(a0)
-    l0 = np.cross(a0, s_ax)
+    """The frame from the canal the mask shows, else (lumbar levels) from the bone alone; the
+    neighbours of the lumbar spine get a frame only from a canal (they only place the spine's
+    curve, which a quadratic through three bodies continues where they have none)."""
+    a0, l0 = _scan_axes(s_ax)
+    midline = _midline(pts, centroid, s_ax, h)
     canal = _canal(pts, centroid, l0, a0, s_ax, h, label_pts)
-    if canal is None:
-        raise LandmarkError(
-            f"vertebra {level}: its mask has no vertebral ring around a spinal canal (no empty "
-            "region behind the body inside the arch or its convex hull) and the label map has no "
-            "spinal_canal or spinal_cord there: the mask lacks its posterior arch or fills its "
-            "canal"
-        )
-    cc, hw, hd = canal
+    if canal is None or not _plausible_canal(canal, midline, h):
+        if level in L.LUMBAR_VERTEBRAE:
+            return _bone_frame(level, pts, centroid, s_ax, h, midline)
+        raise LandmarkError(f"vertebra {level}: its mask shows no spinal canal")
+    cc, hw, hd, source = canal
     rot = np.stack([l0, a0, s_ax], 1)
     # Body: voxels in front of the canal's anterior border (the body's posterior wall), within
     # 30 mm of the midline; a cut further forward drops the body's back and moves its centroid
@@ -472,10 +663,10 @@ def _vertebra_frame(level, pts, centroid, s_ax, h, label_pts) -> VertebraFrame:
         rot = np.stack([l_ax, a_ax, s_ax], 1)
         # Re-measure the canal in the refined frame.
         canal = _canal(pts, centroid, l_ax, a_ax, s_ax, h, label_pts)
-        if canal is not None:
-            cc, hw, hd = canal
+        if canal is not None and _plausible_canal(canal, midline, h):
+            cc, hw, hd, source = canal
     rot = np.stack([l_ax, a_ax, s_ax], 1)
-    return VertebraFrame(level, body_c, rot, cc, float(hw), float(hd))
+    return VertebraFrame(level, body_c, rot, cc, float(hw), float(hd), source)
 
 
 @dataclass

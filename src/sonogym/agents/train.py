@@ -1,5 +1,6 @@
-"""Train a skrl agent on a SonoGym task: ``ppo``, ``a2c``, ``ppo-sf`` or ``ppo-lag`` (the task's
-registry entry lists what it supports).
+"""Train a skrl agent on a SonoGym task with any registered algorithm
+(``sonogym.agents.algorithms``: ``ppo``, ``a2c``, ``ppo-sf``, ``ppo-lag``, or one of your own;
+the task's agents module lists the ones it has a config for).
 
 ``train(task, algo, ...)`` resolves a ``TrainConfig`` (task defaults, device preset, explicit
 options) or, with ``resume=True``, loads the run's own; ``run_training(cfg, out)`` runs it.
@@ -45,6 +46,8 @@ from typing import Any
 import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
+from sonogym.agents.algorithms import ModelSetup, get_algorithm
+from sonogym.agents.algorithms.common import use_multi_tensor_optimizers
 from sonogym.agents.checkpoint import (
     RL_RUN,
     check_obs_version,
@@ -59,9 +62,9 @@ from sonogym.agents.configs import (
     resolve_train_config,
     resume_config,
     to_jsonable,
-    use_multi_tensor_optimizers,
 )
 from sonogym.agents.networks import log_std_ceiling, make_models
+from sonogym.agents.task_defaults import LearningParams
 from sonogym.envs.identity import identity, stamp
 from sonogym.envs.registry import check_task_name, get_task, make_vec
 from sonogym.progress import progress_bar
@@ -273,10 +276,8 @@ def _run_training(
     models = _models(cfg, adapter)
     ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(
-        cfg.rl, algo, models, adapter.observation_space, adapter.action_space,
-        cfg.rl.num_envs, out, device=device, write_interval=write_interval,
-        checkpoint_interval=0,  # checkpoints are ours: written atomically below
-        state_space=adapter.state_space,
+        cfg, models, adapter.observation_space, adapter.action_space, out,
+        write_interval=write_interval, state_space=adapter.state_space,
     )  # fmt: skip
     if adapter.standardizer is not None:  # saved and restored with the agent
         agent.checkpoint_modules["obs_standardizer"] = adapter.standardizer
@@ -322,7 +323,7 @@ def _run_training(
         for t in range(start, steps):
             set_log_std_ceiling(models["policy"], learning, t)
             if cfg.rl.learning.kl_follows_sigma and getattr(agent, "scheduler", None) is not None:
-                agent.scheduler.kl_threshold = kl_threshold_at(cfg.rl, algo, t)
+                agent.scheduler.kl_threshold = kl_threshold_at(cfg.params, cfg.rl.learning, t)
             adapter.update_stats = statistics_update(cfg.rl, t)
             agent.pre_interaction(timestep=t, timesteps=steps)
             with torch.no_grad():
@@ -446,14 +447,9 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
         learning.mean_bound_penalty, learning.bounded_mean,
         0 if state is None else math.prod(state.shape),
     )  # fmt: skip
-    if cfg.algo == "ppo-sf":
-        from sonogym.agents.safety_filter import CostCritic
-
-        models["cost_critic"] = CostCritic(task, layout, space, device, net)
-    elif cfg.algo == "ppo-lag":
-        from sonogym.agents.lagrangian import CostValue
-
-        models["cost_value"] = CostValue(task, layout, space, device, net)
+    extra = get_algorithm(cfg.algo).models
+    if extra is not None:  # the algorithm's own networks (a cost critic, ...)
+        models.update(extra(ModelSetup(task, layout, space, device, net)))
     return models
 
 
@@ -632,10 +628,10 @@ def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]
     return step_s, update_s
 
 
-def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
+def kl_threshold_at(params: Any, learning: LearningParams, step: int) -> float:
     """The KL-adaptive learning rate's threshold at env step ``step`` (per env): the
-    algorithm's ``kl_threshold``, times (sigma_0 / ceiling)^2 where ``kl_follows_sigma`` is
-    set and sigma's ceiling anneals.
+    algorithm config's ``kl_threshold``, times (sigma_0 / ceiling)^2 where the task's
+    ``learning.kl_follows_sigma`` is set and sigma's ceiling anneals.
 
     Why: the KL of a fixed change of the Gaussian's mean grows as 1/sigma^2, so with a fixed
     threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
@@ -644,7 +640,7 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
     at every sigma. Off by default: on the surgery state task it kept the learning rate 3-8x
     higher and made the tilt worse (the reward barely paid for the tilt; the ``cpu`` preset's
     w5 = 50 fixed that)."""
-    base, learning = rl.params(algo).kl_threshold, rl.learning
+    base = params.kl_threshold
     if not learning.kl_follows_sigma or learning.final_log_std is None:
         return base
     init, final = learning.init_log_std, learning.final_log_std

@@ -98,7 +98,12 @@ def export_pretrained(
     (``eval*.json`` of that checkpoint). Replaces an earlier export of the same name."""
     import re
 
-    from sonogym.agents.checkpoint import RL_RUN, export_acting_weights, run_config
+    from sonogym.agents.checkpoint import (
+        RL_RUN,
+        acting_modules,
+        export_acting_weights,
+        run_config,
+    )
     from sonogym.agents.train import read_times
 
     if not re.fullmatch(r"[a-z0-9][a-z0-9_-]*", name):
@@ -113,7 +118,7 @@ def export_pretrained(
     tmp = dest.with_name(f".{name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    export_acting_weights(checkpoint, tmp / WEIGHTS)
+    export_acting_weights(checkpoint, tmp / WEIGHTS, acting_modules(cfg["algo"]))
     shipped_cfg = dict(cfg)
     if cfg.get("init_from"):
         shipped_cfg["init_from"] = _source(cfg["init_from"])  # names, not this machine's paths

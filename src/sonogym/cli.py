@@ -247,13 +247,30 @@ def demo(
              log=typer.echo)  # fmt: skip
 
 
+def _rl_algorithms() -> str:
+    """The registered RL algorithms and the tasks each trains on, for train's and sweep's
+    help: "ppo, a2c (all tasks); ppo-sf, ppo-lag (surgery)."."""
+    from sonogym.agents.algorithms import algorithm_names, task_algorithms
+    from sonogym.envs.registry import task_names
+
+    tasks, groups = task_names(), {}
+    for algo in algorithm_names():
+        on = tuple(t for t in tasks if algo in task_algorithms(t))
+        groups.setdefault(on, []).append(algo)
+    return (
+        "; ".join(
+            f"{', '.join(algos)} ({'all tasks' if on == tasks else ', '.join(on)})"
+            for on, algos in groups.items()
+        )
+        + "."
+    )
+
+
 @app.command()
 @with_options(RunOptions)
 def train(
     task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
-    algo: Annotated[
-        str, typer.Option(help="ppo, a2c (all tasks); ppo-sf, ppo-lag (surgery).")
-    ] = "ppo",
+    algo: Annotated[str, typer.Option(help=_rl_algorithms())] = "ppo",
     seed: Annotated[
         int | None, typer.Option(help="Seed of torch and the envs (default 0).")
     ] = None,
@@ -288,8 +305,8 @@ def train(
         typer.Option(
             "--set",
             help="A training setting as KEY=VALUE, as sonogym sweep's grid names it: "
-            "init_log_std, final_log_std, anneal_steps, reward_scale, ..., ppo.<field>, "
-            "a2c.<field>; repeatable. Applied last.",
+            "init_log_std, final_log_std, anneal_steps, reward_scale, ..., <algorithm>.<field> "
+            "(ppo.learning_rate); repeatable. Applied last.",
         ),
     ] = None,
     init_from: Annotated[
@@ -304,8 +321,8 @@ def train(
 ) -> None:
     """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory.
     Settings resolve from the task's defaults, then the device preset, then these options."""
+    from sonogym.agents.algorithms import check_algo
     from sonogym.agents.train import train as run_train
-    from sonogym.envs.registry import check_algo
     from sonogym.evaluation.protocols import protocol_env_kwargs
 
     with _bad_parameter():
@@ -531,7 +548,7 @@ def parse_patients(specs: list[str] | None) -> tuple[int | str, ...] | None:
 def sweep(
     task: Annotated[str, typer.Option(help="navigation, reconstruction or surgery.")],
     out: Annotated[Path, typer.Option(help="Sweep folder (sweep.md/csv, runs/, tune/, plots/).")],
-    algo: Annotated[str, typer.Option(help="ppo, a2c; ppo-sf, ppo-lag (surgery).")] = "ppo",
+    algo: Annotated[str, typer.Option(help=_rl_algorithms())] = "ppo",
     seeds: Annotated[
         int | None, typer.Option(help="Seeds per grid point (0, 1, ...; default 3).")
     ] = None,
@@ -539,7 +556,8 @@ def sweep(
         list[str] | None,
         typer.Option(
             help="key=v1,v2; repeatable. Keys: num_envs, net, obs_downsample, reward_scale, "
-            "init_log_std, final_log_std, anneal_steps, ppo.<field>, a2c.<field>, env.<option>."
+            "init_log_std, final_log_std, anneal_steps, <algorithm>.<field> (ppo.learning_rate), "
+            "env.<option>."
         ),
     ] = None,
     samples: Annotated[

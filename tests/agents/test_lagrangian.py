@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from sonogym.agents.lagrangian import PIDLagrangian
+from sonogym.agents.algorithms.ppo_lag.agent import PIDLagrangian
 from sonogym.agents.train import train
 
 

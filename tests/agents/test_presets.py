@@ -8,9 +8,10 @@ import math
 
 import pytest
 
+from sonogym.agents.algorithms import algo_config
 from sonogym.agents.configs import TrainConfig, resolve_train_config
 from sonogym.agents.presets import cpu_threads, resolve_preset
-from sonogym.envs.registry import get_task
+from sonogym.agents.task_defaults import training_defaults
 
 
 @pytest.mark.parametrize(
@@ -44,10 +45,10 @@ def test_cpu_preset_resolves_per_task():
     assert nav.rl.obs_downsample == 4  # 200 px of depth pooled to 50
     surg = resolve_train_config("surgery", "ppo", preset="cpu")
     assert surg.rl.obs_downsample == 1  # the 3-D volume is 50 px deep already
-    assert surg.params == get_task("surgery").training.ppo_cpu  # the task's CPU table
-    assert surg.params != get_task("surgery").training.ppo
+    assert surg.params == training_defaults("surgery").cpu.algorithms["ppo"]  # its CPU table
+    assert surg.params != algo_config("surgery", "ppo")
     paper = resolve_train_config("surgery", "ppo", preset="paper")
-    assert paper.params == get_task("surgery").training.ppo  # the paper's table
+    assert paper.params == algo_config("surgery", "ppo")  # the paper's table
     assert (paper.rl.num_envs, paper.rl.net, paper.threads) == (128, "paper", None)
 
 
@@ -60,7 +61,7 @@ def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
     cpu = resolve_train_config("surgery", "ppo", preset="cpu")
     box = (0.005, 0.005, 0.01, 0.02, 0.02, 0.001)  # m x3, rad x3: what the drill arm realises
     recipe = {"w5": 50.0, "unsafe_distance_penalty": 100.0, "action_limit": box}
-    assert cpu.rl.env_kwargs == get_task("surgery").training.env_kwargs_cpu == recipe
+    assert cpu.rl.env_kwargs == training_defaults("surgery").cpu.env_kwargs == recipe
     assert resolve_train_config("surgery", "ppo", preset="paper").rl.env_kwargs == {}
     given = resolve_train_config(
         "surgery", "ppo", preset="cpu", env_kwargs={"w5": 5.0, "obs_mode": "state"}
@@ -96,7 +97,7 @@ def test_the_cpu_preset_alone_trains_the_published_recipe(task, obs_mode, publis
     )
     assert default.to_dict() == explicit.to_dict()
     paper = resolve_train_config(task, "ppo", preset="paper", env_kwargs=obs, seed=1)
-    assert paper.rl.timesteps == get_task(task).training.timesteps  # the paper's own
+    assert paper.rl.timesteps == training_defaults(task).timesteps  # the paper's own
     assert paper.rl.env_kwargs == obs
 
 
@@ -107,7 +108,7 @@ def test_every_preset_keeps_the_tasks_exploration(preset):
     assert surg.rl.learning.init_log_std == pytest.approx(math.log(0.05))
     assert surg.rl.learning.standardize_vectors
     nav = resolve_train_config("navigation", "ppo", preset=preset)
-    assert nav.rl.learning == get_task("navigation").training.learning
+    assert nav.rl.learning == training_defaults("navigation").learning
 
 
 def test_explicit_options_win_over_preset_and_task():
@@ -118,7 +119,7 @@ def test_explicit_options_win_over_preset_and_task():
     assert (cfg.rl.num_envs, cfg.steps, cfg.rl.net, cfg.rl.obs_downsample) == (8, 500, "paper", 2)
     assert (cfg.threads, cfg.seed, cfg.preset) == (2, 7, "cpu")
     assert cfg.rl.env_kwargs["patients"] == (0, 1)
-    assert cfg.params == get_task("navigation").training.a2c
+    assert cfg.params == algo_config("navigation", "a2c")
 
 
 def test_train_config_survives_config_json():
@@ -163,9 +164,9 @@ def test_nonsense_options_are_refused_not_defaulted(kw, message):
 def test_algorithm_tables_refuse_settings_no_run_trains_with(change, message):
     import dataclasses
 
-    ppo = get_task("navigation").training.ppo
+    ppo = algo_config("navigation", "ppo")
     with pytest.raises(ValueError, match=message):
         dataclasses.replace(ppo, **change)
-    a2c = get_task("navigation").training.a2c
+    a2c = algo_config("navigation", "a2c")
     with pytest.raises(ValueError, match="A2CParams.rollouts must be >= 1"):
         dataclasses.replace(a2c, rollouts=-1)

@@ -247,7 +247,9 @@ def test_progress_in_a_log_is_a_few_plain_lines(tmp_path, capsys):
     ("edit", "message"),
     [
         (lambda c: c.update(task="bogus"), "task 'bogus' is not a sonogym task"),
-        (lambda c: c.update(algo="dqn"), "algorithm 'dqn' is not supported on navigation"),
+        (lambda c: c.update(algo="dqn"), "unknown algorithm 'dqn'; known algorithms: ['ppo'"),
+        (lambda c: c.update(algo="ppo-lag"), "algorithm 'ppo-lag' is not supported on navigation"),
+        (lambda c: c.update(algo_params=[]), "algo_params must be an object"),
         (lambda c: c.update(seed="0"), "seed must be an integer, got '0'"),
         (lambda c: c.update(task_config=[]), "task_config must be an object"),
         (lambda c: c["task_config"].pop("env_kwargs"), "task_config lacks ['env_kwargs']"),

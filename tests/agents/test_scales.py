@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from sonogym.agents.adapter import RunningStandardizer, SkrlEnvAdapter
+from sonogym.agents.algorithms import algo_config
 from sonogym.agents.checkpoint import read_checkpoint, rl_policy
 from sonogym.agents.configs import task_config
 from sonogym.agents.networks import make_models
@@ -180,19 +181,19 @@ def test_kl_threshold_follows_sigma_when_asked(tmp_path, monkeypatch):
     from sonogym.agents.train import kl_threshold_at, run_training
 
     torch.set_num_threads(1)
-    rl = task_config("surgery", preset="cpu")
-    base_kl = rl.ppo.kl_threshold
-    assert not rl.learning.kl_follows_sigma and kl_threshold_at(rl, "ppo", 10**6) == base_kl  # off
-    on = with_learning(rl, kl_follows_sigma=True)
+    rl, ppo = task_config("surgery", preset="cpu"), algo_config("surgery", "ppo", "cpu")
+    base_kl = ppo.kl_threshold
+    assert not rl.learning.kl_follows_sigma and kl_threshold_at(ppo, rl.learning, 10**6) == base_kl
+    on = with_learning(rl, kl_follows_sigma=True).learning
     # the threshold bounds the same mean step at every sigma: x (sigma_0 / ceiling)^2
-    assert kl_threshold_at(on, "ppo", 0) == pytest.approx(base_kl)
-    end = kl_threshold_at(on, "ppo", on.learning.anneal_steps)
+    assert kl_threshold_at(ppo, on, 0) == pytest.approx(base_kl)
+    end = kl_threshold_at(ppo, on, on.anneal_steps)
     assert end == pytest.approx(base_kl * (0.05 / 0.005) ** 2)
-    assert kl_threshold_at(on, "ppo", 10 * on.learning.anneal_steps) == pytest.approx(end)
-    mid = kl_threshold_at(on, "ppo", on.learning.anneal_steps // 2)
+    assert kl_threshold_at(ppo, on, 10 * on.anneal_steps) == pytest.approx(end)
+    mid = kl_threshold_at(ppo, on, on.anneal_steps // 2)
     assert mid == pytest.approx(base_kl * 10.0)  # geometric: sqrt(100)
-    no_anneal = with_learning(on, final_log_std=None)
-    assert kl_threshold_at(no_anneal, "ppo", 10**6) == base_kl
+    no_anneal = dataclasses.replace(on, final_log_std=None)
+    assert kl_threshold_at(ppo, no_anneal, 10**6) == base_kl
 
     # ... and the training loop hands it to skrl's scheduler before every update
     seen = []
@@ -209,14 +210,12 @@ def test_kl_threshold_follows_sigma_when_asked(tmp_path, monkeypatch):
         env_kwargs=dict(patients=(0,), phantom_spacing=0.002, obs_mode="state",
                         episode_length=16),
     )  # fmt: skip
-    fast = dataclasses.replace(
-        with_learning(base.rl, kl_follows_sigma=True, anneal_steps=32),
-        ppo=dataclasses.replace(base.rl.ppo, rollouts=8),
-    )
-    run_training(dataclasses.replace(base, rl=fast), tmp_path / "kl", progress=False,
-                 log=lambda _: None)  # fmt: skip
+    fast = with_learning(base.rl, kl_follows_sigma=True, anneal_steps=32)
+    fast_ppo = dataclasses.replace(base.params, rollouts=8)
+    run_training(dataclasses.replace(base, rl=fast, params=fast_ppo), tmp_path / "kl",
+                 progress=False, log=lambda _: None)  # fmt: skip
     updates = [t for t in range(32) if (t + 1) % 8 == 0]
-    epochs = fast.ppo.learning_epochs
-    want = [kl_threshold_at(fast, "ppo", t) for t in updates for _ in range(epochs)]
+    epochs = fast_ppo.learning_epochs
+    want = [kl_threshold_at(fast_ppo, fast.learning, t) for t in updates for _ in range(epochs)]
     assert seen == pytest.approx(want)
     assert seen[-1] > 50 * base_kl

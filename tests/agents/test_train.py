@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from sonogym.agents.algorithms import algo_config, check_algo, task_algorithms
 from sonogym.agents.checkpoint import load_policy
 from sonogym.agents.configs import task_config
 from sonogym.agents.train import train
 from sonogym.envs.identity import identity
-from sonogym.envs.registry import check_algo, get_task
 
 FAST_ENV = dict(phantom_spacing=0.002)
 
@@ -51,8 +51,9 @@ def test_navigation_ppo_trains_logs_checkpoints_and_resumes(tmp_path):
     assert res.checkpoint == run / "checkpoints" / "agent_64.pt" and res.checkpoint.exists()
     _weights_changed(run, 64)
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["task_config"]["ppo"]["rollouts"] == 32
-    assert cfg["task_config"]["ppo"]["time_limit_bootstrap"] is True
+    assert cfg["algo_params"]["rollouts"] == 32
+    assert cfg["algo_params"]["time_limit_bootstrap"] is True
+    assert "ppo" not in cfg["task_config"]  # a run records its own algorithm's config only
     assert cfg["task_config"]["obs_downsample"] == 2 and cfg["num_envs"] == 2
     assert cfg["task_config"]["env_kwargs"]["patients"] == [0]
     assert cfg["identity"] == identity("navigation", cfg["task_config"]["env_kwargs"])
@@ -144,30 +145,29 @@ def test_unsupported_pairs_are_refused(tmp_path):
         check_algo("navigation", "ppo-lag")
     with pytest.raises(ValueError, match="known tasks"):
         check_algo("nope", "ppo")
-    assert get_task("surgery").training.algos == ("ppo", "a2c", "ppo-sf", "ppo-lag")
+    assert task_algorithms("surgery") == ("ppo", "a2c", "ppo-sf", "ppo-lag")
     with pytest.raises(ValueError, match="not supported on reconstruction"):
         _tiny("reconstruction", "ppo-sf", tmp_path / "sf", steps=16)
 
 
 def test_paper_hyperparameters():
-    nav, rec, sur = (task_config(t) for t in ("navigation", "reconstruction", "surgery"))
-    assert (nav.ppo.rollouts, nav.ppo.learning_epochs, nav.ppo.mini_batches) == (32, 5, 32)
-    assert (rec.ppo.rollouts, rec.ppo.learning_epochs, rec.ppo.mini_batches) == (32, 3, 4)
-    assert (sur.ppo.rollouts, sur.ppo.learning_epochs, sur.ppo.mini_batches) == (16, 3, 32)
-    assert (nav.ppo.learning_rate, rec.ppo.learning_rate, sur.ppo.learning_rate) == (
-        1e-4,
-        3e-4,
-        1e-4,
-    )
-    assert (nav.ppo.value_clip, rec.ppo.value_clip, sur.ppo.value_clip) == (0.2, 0.1, 0.1)
-    assert [(c.a2c.rollouts, c.a2c.mini_batches) for c in (nav, rec, sur)] == [
-        (16, 32),
-        (64, 32),
-        (64, 4),
-    ]
-    for c in (nav, rec, sur):
-        assert c.num_envs == 128 and c.ppo.kl_threshold == 0.008 == c.a2c.kl_threshold
-        assert c.ppo.grad_norm_clip == 1.0 and c.ppo.ratio_clip == 0.2
+    tasks = ("navigation", "reconstruction", "surgery")
+    nav, rec, sur = (algo_config(t, "ppo") for t in tasks)
+    assert (nav.rollouts, nav.learning_epochs, nav.mini_batches) == (32, 5, 32)
+    assert (rec.rollouts, rec.learning_epochs, rec.mini_batches) == (32, 3, 4)
+    assert (sur.rollouts, sur.learning_epochs, sur.mini_batches) == (16, 3, 32)
+    assert (nav.learning_rate, rec.learning_rate, sur.learning_rate) == (1e-4, 3e-4, 1e-4)
+    assert (nav.value_clip, rec.value_clip, sur.value_clip) == (0.2, 0.1, 0.1)
+    a2c = [algo_config(t, "a2c") for t in tasks]
+    assert [(c.rollouts, c.mini_batches) for c in a2c] == [(16, 32), (64, 32), (64, 4)]
+    for c, a in zip((nav, rec, sur), a2c, strict=True):
+        assert c.kl_threshold == 0.008 == a.kl_threshold
+        assert c.grad_norm_clip == 1.0 and c.ratio_clip == 0.2
+    assert all(task_config(t).num_envs == 128 for t in tasks)
+    # the safe-RL algorithms train on the task's PPO table, with the reference's settings
+    sf, lag = algo_config("surgery", "ppo-sf"), algo_config("surgery", "ppo-lag")
+    assert sf.learning_rate == lag.learning_rate == sur.learning_rate
+    assert (sf.cost_threshold, sf.filter_mode, lag.cost_limit) == (0.5, "search", 5.0)
 
 
 def test_cli_train_and_refusal(tmp_path):
@@ -268,7 +268,7 @@ def test_init_from_starts_from_the_checkpoint_and_counts_its_cost(tmp_path):
     assert cfg["init_from"]["checkpoint"] == str(ckpt.resolve())
     assert cfg["init_from"]["steps"] == 32 and cfg["init_from"]["cpu_s"] == source_cpu
     assert cfg["task_config"]["learning"]["final_log_std"] == -1.0
-    assert cfg["task_config"]["ppo"]["learning_rate"] == pytest.approx(3e-5)
+    assert cfg["algo_params"]["learning_rate"] == pytest.approx(3e-5)
     assert read_times(tuned / "checkpoints")[32]["cpu_s"] > source_cpu
     # the run's own exploration schedule: its sigma ceiling has fallen to exp(-1)
     policy, _ = load_policy(tuned)

@@ -59,6 +59,7 @@ def _fake_run(root, task, algo, seed, simulator="physical", protocols=("idt",), 
             "obs_layout": {"keys": ["image"], "shapes": [[1, 50, 37]]},
             "action_space": {"low": [-1.0] * n_actions, "high": [1.0] * n_actions},
             "task_config": {"env_kwargs": env, "obs_downsample": 1, "obs_scales": {}},
+            "algo_params": {},
         }
     cfg["identity"] = identity(task, env)
     (run / "config.json").write_text(json.dumps(cfg))

@@ -3,7 +3,11 @@
 * ``adapter``: ``SkrlEnvAdapter``, our torch ``VectorEnv`` as a skrl env (flat observations in
   sorted-key order, ``ObsLayout``, true final observations for time-limit bootstrapping);
 * ``networks``: per-task shared-trunk Gaussian policy + value models;
-* ``configs``: the paper's per-task PPO / A2C hyperparameters and the skrl agent factory;
+* ``algorithms``: the RL algorithms by name (PPO, A2C, PPO + safety filter, PPO-Lagrangian):
+  each one's config, skrl builder and acting hooks; ``register`` adds one;
+* ``task_defaults``: the records a task's agents module (``sonogym.tasks.<task>.agents``) is
+  made of, and ``training_defaults(task)``;
+* ``configs``: a run's resolved config (task defaults, algorithm config, preset, overrides);
 * ``train``: ``train(task, algo, ...)`` (TensorBoard, checkpoints, config.json, resume);
 * ``checkpoint``: ``load_policy(run_dir)``.
 """

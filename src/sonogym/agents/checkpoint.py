@@ -1,6 +1,6 @@
 """Checkpoints of a run directory written by ``sonogym.agents.train``: find them (``RL_RUN``,
 the RL kind of ``sonogym.runs.RunFolder``), load the trained networks, and act with them in an
-env as a ``Policy`` (``rl_policy``)."""
+env as a ``Policy`` (``rl_policy``; how a run acts is its algorithm's ``Acting``)."""
 
 from __future__ import annotations
 
@@ -23,8 +23,16 @@ from sonogym.runs import (
     load_weights,
 )
 
-#: The modules an exported checkpoint keeps: what acting needs (no optimiser, no value).
-ACTING_MODULES = ("policy", "obs_standardizer", "cost_critic")
+#: The modules every algorithm's acting reads (an algorithm's ``Acting.modules`` adds its own).
+ACTING_MODULES = ("policy", "obs_standardizer")
+
+
+def acting_modules(algo: str) -> tuple[str, ...]:
+    """The checkpoint entries a run of ``algo`` acts with: what a shipped policy keeps (no
+    optimiser, no value)."""
+    from sonogym.agents.algorithms import get_algorithm
+
+    return ACTING_MODULES + get_algorithm(algo).acting.modules
 
 
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
@@ -60,15 +68,18 @@ def _read_safetensors(path: Path, device) -> dict:
     return state
 
 
-def export_acting_weights(checkpoint: str | Path, dest: str | Path) -> Path:
-    """The acting modules (``ACTING_MODULES``) of ``checkpoint`` as one safetensors file at
-    ``dest`` (tensors ``<module>/<parameter>``; nothing to unpickle), written atomically."""
+def export_acting_weights(
+    checkpoint: str | Path, dest: str | Path, modules: tuple[str, ...] = ACTING_MODULES
+) -> Path:
+    """The acting ``modules`` (``acting_modules(algo)``) of ``checkpoint`` as one safetensors
+    file at ``dest`` (tensors ``<module>/<parameter>``; nothing to unpickle), written
+    atomically."""
     from safetensors.torch import save
 
     state = read_checkpoint(checkpoint)
     flat = {
         f"{m}/{k}": v.detach().cpu().contiguous()
-        for m in ACTING_MODULES
+        for m in modules
         if m in state
         for k, v in state[m].items()
         if isinstance(v, torch.Tensor)
@@ -90,7 +101,7 @@ def load_policy(
     cfg = run_config(run)
     check_obs_version(cfg, run / "config.json")  # reading its logs (report) needs no check
     if checkpoint is None:
-        checkpoint = _newest(run)
+        checkpoint = newest_checkpoint(run)
     layout = ObsLayout(
         tuple(cfg["obs_layout"]["keys"]),
         tuple(tuple(s) for s in cfg["obs_layout"]["shapes"]),
@@ -110,8 +121,9 @@ def load_policy(
     return model, cfg
 
 
-def _newest(run: Path) -> Path:
-    return RunFolder(run, RL_RUN).require_checkpoint().path
+def newest_checkpoint(run: str | Path) -> Path:
+    """The run's newest readable ``checkpoints/agent_<t>.pt``."""
+    return RunFolder(Path(run), RL_RUN).require_checkpoint().path
 
 
 def load_module(module: torch.nn.Module, checkpoint: str | Path, key: str, device) -> None:
@@ -147,33 +159,6 @@ def set_log_std_ceiling(model: SharedActorCritic, learning: dict, step: int | No
     model.log_std_max.fill_(ceiling)
 
 
-def filter_settings(task_config: dict) -> tuple[float, str]:
-    """(threshold, mode) of a ``ppo-sf`` run's safety filter, from its ``task_config`` (runs
-    written before the mode existed get today's default, ``SafetyParams.filter_mode``)."""
-    from sonogym.envs.spec import SafetyParams
-
-    safety = task_config["safety"]
-    mode = safety.get("filter_mode", SafetyParams.filter_mode)
-    return float(safety["cost_threshold"]), mode
-
-
-def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
-    """(cost critic in eval mode, filter threshold, filter mode) of a ``ppo-sf`` run."""
-    from sonogym.agents.safety_filter import CostCritic
-
-    policy, cfg = load_policy(run, checkpoint, device)
-    if cfg["algo"] != "ppo-sf":
-        raise ValueError(f"{run} is a {cfg['algo']} run; only ppo-sf runs have a cost critic")
-    if checkpoint is None:
-        checkpoint = _newest(run)
-    critic = CostCritic(
-        cfg["task"], policy.encoder.layout, policy.action_space, device, run_net(cfg)
-    )
-    load_module(critic, checkpoint, "cost_critic", device)
-    critic.eval()
-    return critic, *filter_settings(cfg["task_config"])
-
-
 #: Keys every run's ``config.json`` has (what evaluation reads).
 RUN_CONFIG_KEYS = ("task", "algo", "seed", "obs_layout", "action_space", "task_config")
 
@@ -181,7 +166,7 @@ RUN_CONFIG_KEYS = ("task", "algo", "seed", "obs_layout", "action_space", "task_c
 def run_config(run: str | Path) -> dict:
     """A run's ``config.json``, with a clear error if it is missing, malformed, incomplete or
     hand-edited into something no run has (``check_run_config``)."""
-    from sonogym.agents.configs import nested_task_config
+    from sonogym.agents.configs import upgrade_config
     from sonogym.envs.registry import check_task_name
     from sonogym.runs import read_json
 
@@ -189,8 +174,7 @@ def run_config(run: str | Path) -> dict:
     cfg = read_json(path, "`sonogym train` run folder", RUN_CONFIG_KEYS)
     check_task_name(cfg["task"], path)  # it names files (eval, plots)
     try:
-        if isinstance(cfg["task_config"], dict):
-            cfg["task_config"] = nested_task_config(cfg["task_config"])
+        cfg = upgrade_config(cfg)  # today's layout, whenever the run was written
         check_run_config(cfg)
     except ValueError as e:
         raise ValueError(
@@ -203,7 +187,8 @@ def check_run_config(cfg: dict) -> None:
     """Refuse, naming the key, what evaluation would otherwise trip over late: an unknown task
     or an algorithm the task has no run of, values of the wrong type, an observation layout or
     action box that is not a list of the right sizes, and env options the task's env refuses."""
-    from sonogym.envs.registry import check_algo, env_config
+    from sonogym.agents.algorithms import check_algo
+    from sonogym.envs.registry import env_config, get_task
 
     def expect(ok: bool, what: str) -> None:
         if not ok:
@@ -211,8 +196,11 @@ def check_run_config(cfg: dict) -> None:
 
     for key in ("task", "algo"):
         expect(isinstance(cfg[key], str), f"{key} must be a name, got {cfg[key]!r}")
-    spec = check_algo(cfg["task"], cfg["algo"])
+    check_algo(cfg["task"], cfg["algo"])
+    spec = get_task(cfg["task"])
     expect(_is_int(cfg["seed"]), f"seed must be an integer, got {cfg['seed']!r}")
+    params = cfg.get("algo_params")
+    expect(isinstance(params, dict), f"algo_params must be an object, got {params!r}")
     tc = cfg["task_config"]
     expect(isinstance(tc, dict), f"task_config must be an object, got {tc!r}")
     learning = tc.get("learning")
@@ -285,49 +273,43 @@ def run_net(cfg: dict) -> str:
 
 class RLPolicy(StatelessPolicy):
     """A trained run acting deterministically (the Gaussian's mean action) on an env's
-    observations, flattened as in training; a ``ppo-sf`` run acts through its safety filter
-    (``filter_mode`` "search": an action with Q_c > threshold becomes the nearest candidate
-    predicted safe, except where ``info["safe"]`` says the tip is already outside the safe set;
-    "zero": it becomes 0)."""
+    observations, flattened as in training."""
 
-    def __init__(
-        self, model, adapter: SkrlEnvAdapter, critic=None, threshold: float = 0.5,
-        filter_mode: str = "search",
-    ):  # fmt: skip
+    def __init__(self, model, adapter: SkrlEnvAdapter):
         self.model = model
         self.adapter = adapter
-        self.critic = critic
-        self.threshold = threshold
-        self.filter_mode = filter_mode
 
     def act(self, obs, info) -> torch.Tensor:
         x = self.adapter.flatten(obs)
-        action = self.model.act({"observations": x}, role="policy")[1]["mean_actions"]
-        if self.critic is not None:
-            from sonogym.agents.safety_filter import filter_actions
-
-            action, _ = filter_actions(
-                self.critic, x, action, self.threshold, self.filter_mode, info.get("safe")
-            )
-        return action
+        return self.model.act({"observations": x}, role="policy")[1]["mean_actions"]
 
 
 def rl_policy(
-    run: str | Path, env, checkpoint: str | Path | None = None, device: str = "cpu"
-) -> RLPolicy:
-    """The run's policy acting in ``env`` (an env of the run's task)."""
+    run: str | Path, env, checkpoint: str | Path | None = None, device: str = "cpu",
+    controller: str = "policy", settings: dict | None = None,
+):  # fmt: skip
+    """The run's policy acting in ``env`` (an env of the run's task), as its algorithm acts
+    (``Acting.policy``: a ``ppo-sf`` run through its safety filter): evaluation controller
+    ``controller`` ("policy" or one the algorithm adds), with the algorithm's test-time
+    ``settings`` (None: the run's own)."""
+    from sonogym.agents.algorithms import ActingSetup, get_algorithm
+
     model, cfg = load_policy(run, checkpoint, device)
     tc = cfg["task_config"]
     adapter = SkrlEnvAdapter(
         env, tc["obs_downsample"], tc["learning"]["obs_scales"],
         standardize_vectors=tc["learning"].get("standardize_vectors", False),
     )  # fmt: skip
+    checkpoint = Path(checkpoint) if checkpoint is not None else newest_checkpoint(run)
     if adapter.standardizer is not None:
-        load_module(adapter.standardizer, checkpoint or _newest(run), "obs_standardizer", device)
-    if cfg["algo"] == "ppo-sf":
-        critic, threshold, mode = load_cost_critic(run, checkpoint, device)
-        return RLPolicy(model, adapter, critic, threshold, mode)
-    return RLPolicy(model, adapter)
+        load_module(adapter.standardizer, checkpoint, "obs_standardizer", device)
+    policy, acting = RLPolicy(model, adapter), get_algorithm(cfg["algo"]).acting
+    if acting.policy is None:
+        return policy
+    if settings is None:
+        settings = acting.settings.resolve(cfg, {}) if acting.settings is not None else {}
+    setup = ActingSetup(policy, Path(run), cfg, checkpoint, device, controller, settings)
+    return acting.policy(setup)
 
 
 #: How ``sonogym.runs.RunFolder`` reads an RL run: checkpoints ``agent_<t>.pt`` (t: env steps

@@ -47,7 +47,7 @@ from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
 from torch import nn
 
 from sonogym.agents.adapter import ObsLayout
-from sonogym.envs.registry import get_task
+from sonogym.agents.task_defaults import training_defaults
 
 VECTOR_MLP = (128, 128, 64)
 TRUNK_MLP = (512, 256, 128)
@@ -83,8 +83,8 @@ def net_size(net: str) -> NetSize:
 
 def conv_spec(task: str, net: str = "paper"):
     """The (out_channels, kernel, stride) layers of ``task``'s conv trunk for size ``net``
-    (the task registry's ``TrainingDefaults.trunks``)."""
-    trunks = get_task(task).training.trunks
+    (the task's ``TrainingDefaults.trunks``)."""
+    trunks = training_defaults(task).trunks
     convs = net_size(net).convs
     if convs not in trunks:
         raise ValueError(f"task {task!r} has no {convs!r} conv trunk; it has {list(trunks)}")
@@ -170,7 +170,7 @@ class Encoder(nn.Module):
         self.branches = nn.ModuleDict()
         # vector entries split into parts with one MLP each (surgery: position + quaternion)
         self.splits = {
-            k: v for k, v in get_task(task).training.vector_splits.items() if k in layout.keys
+            k: v for k, v in training_defaults(task).vector_splits.items() if k in layout.keys
         }
         total = 0
         for key, shape in zip(layout.keys, layout.shapes, strict=True):

@@ -2,10 +2,10 @@
 images and how many torch threads fit the machine a run is on.
 
 Presets set only these four; the task's own settings (the paper's hyperparameter tables,
-initial exploration, input scaling, and the CPU table and env options a task may keep for the
-``cpu`` preset: ``TrainingDefaults.ppo_cpu`` / ``env_kwargs_cpu``) come from the task
-registry. A run's settings resolve in one order: the task's defaults, then the preset, then
-explicit options.
+initial exploration, input scaling, and the algorithm configs and env options a task may keep
+for the ``cpu`` preset: ``TrainingDefaults.cpu``) come from the task's agents module
+(``sonogym.tasks.<task>.agents``). A run's settings resolve in one order: the task's
+defaults, then the preset, then explicit options.
 
 * ``paper``: the paper's configuration (128 envs, the paper's conv trunks, full-resolution
   images, torch's default threads) — meant for a GPU.

@@ -16,7 +16,8 @@ seeds into ``out/plots`` (``sonogym plot --runs out/runs``).
 Grid keys: ``num_envs``, ``net``, ``obs_downsample``, ``reward_scale``, ``init_log_std``,
 ``final_log_std``, ``anneal_steps``, ``mean_bound_penalty``, ``standardize_steps``,
 ``kl_follows_sigma`` (the task config),
-``ppo.<field>`` / ``a2c.<field>`` (the algorithm's table), ``env.<option>`` (an env option).
+``<algorithm>.<field>`` (the run's algorithm config, e.g. ``ppo.learning_rate``),
+``env.<option>`` (an env option).
 Ray runs locally unless ``address`` names a cluster (``ray://host:10001``).
 """
 

@@ -1,5 +1,6 @@
-"""Train a skrl agent on a SonoGym task: ``ppo``, ``a2c``, ``ppo-sf`` or ``ppo-lag`` (the task's
-registry entry lists what it supports).
+"""Train a skrl agent on a SonoGym task with any registered algorithm
+(``sonogym.agents.algorithms``: ``ppo``, ``a2c``, ``ppo-sf``, ``ppo-lag``, or one of your own;
+the task's agents module lists the ones it has a config for).
 
 ``train(task, algo, ...)`` resolves a ``TrainConfig`` (task defaults, device preset, explicit
 options) or, with ``resume=True``, loads the run's own; ``run_training(cfg, out)`` runs it.
@@ -45,6 +46,8 @@ from typing import Any
 import torch
 
 from sonogym.agents.adapter import SkrlEnvAdapter
+from sonogym.agents.algorithms import ModelSetup, get_algorithm
+from sonogym.agents.algorithms.common import use_multi_tensor_optimizers
 from sonogym.agents.checkpoint import (
     RL_RUN,
     check_obs_version,
@@ -59,9 +62,9 @@ from sonogym.agents.configs import (
     resolve_train_config,
     resume_config,
     to_jsonable,
-    use_multi_tensor_optimizers,
 )
 from sonogym.agents.networks import log_std_ceiling, make_models
+from sonogym.agents.task_defaults import LearningParams
 from sonogym.envs.identity import identity, stamp
 from sonogym.envs.registry import check_task_name, get_task, make_vec
 from sonogym.progress import progress_bar
@@ -242,51 +245,85 @@ def _run_training(
     log: Callable[[str], None],
     on_checkpoint: CheckpointCallback | None,
 ) -> TrainResult:
-    from skrl.trainers.torch import SequentialTrainerCfg
-
-    start_ckpt = None
-    if resume:
-        start_ckpt = RunFolder(out, RL_RUN).newest_readable_checkpoint(warn=log)
-        if start_ckpt is None:
-            raise FileNotFoundError(f"nothing to resume: no readable checkpoint in {out}")
-        if start_ckpt.step >= cfg.steps:
-            raise ValueError(
-                f"{out} already has {start_ckpt.step} steps >= the requested {cfg.steps}; "
-                "pass a larger --steps to train further"
-            )
-        start_ckpt = dataclasses.replace(start_ckpt, state=None)  # the agent reads it below
+    start_ckpt = _resume_point(cfg, out, log) if resume else None
     start = start_ckpt.step if start_ckpt else 0
     threads_before = torch.get_num_threads()
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
-    task, algo, steps, device = cfg.task, cfg.algo, cfg.steps, cfg.device
     torch.manual_seed(cfg.seed)
-    env = make_env(cfg.rl, cfg.rl.num_envs, device)
+    env = make_env(cfg.rl, cfg.rl.num_envs, cfg.device)
+    try:
+        run = _set_up(cfg, out, env, start)
+        if start_ckpt is not None:
+            load_agent(run.agent, start_ckpt.path)
+        elif cfg.init_from is not None:
+            warm_start(run.agent, cfg.init_from, run.adapter)
+        _write_run_config(cfg, out, run, start, resume)
+        if start_ckpt is None:
+            run.ckpt_dir.mkdir(parents=True, exist_ok=True)
+            save_agent(run.agent, run.ckpt_dir / "agent_0.pt")  # the initial weights
+        return _train_loop(cfg, out, run, start, progress, log, on_checkpoint)
+    finally:
+        env.close()
+        torch.set_num_threads(threads_before)
+
+
+@dataclass
+class _Run:
+    """What a training run steps: the env's skrl view, the networks, the agent, and where and
+    how often checkpoints and TensorBoard go (env steps per env)."""
+
+    adapter: SkrlEnvAdapter
+    models: dict
+    agent: Any
+    ckpt_dir: Path
+    ckpt_interval: int
+    write_interval: int
+
+
+def _resume_point(cfg: TrainConfig, out: Path, log: Callable[[str], None]):
+    """The checkpoint a resumed run continues from (its newest readable one), refused if there
+    is none or it has the requested steps already."""
+    start_ckpt = RunFolder(out, RL_RUN).newest_readable_checkpoint(warn=log)
+    if start_ckpt is None:
+        raise FileNotFoundError(f"nothing to resume: no readable checkpoint in {out}")
+    if start_ckpt.step >= cfg.steps:
+        raise ValueError(
+            f"{out} already has {start_ckpt.step} steps >= the requested {cfg.steps}; "
+            "pass a larger --steps to train further"
+        )
+    return dataclasses.replace(start_ckpt, state=None)  # the agent reads it
+
+
+def _set_up(cfg: TrainConfig, out: Path, env, start: int) -> _Run:
+    """The adapter, networks and agent of run ``cfg`` on ``env`` from env step ``start``; the
+    training memory is checked before skrl allocates it."""
+    from skrl.trainers.torch import SequentialTrainerCfg
+
+    learning = cfg.rl.learning
     adapter = SkrlEnvAdapter(
-        env, cfg.rl.obs_downsample, cfg.rl.learning.obs_scales, seed=cfg.seed + start,
-        standardize_vectors=cfg.rl.learning.standardize_vectors,
-        stagger_episodes=cfg.rl.learning.stagger_episodes,
-        privileged_state=cfg.rl.learning.privileged_critic,
+        env, cfg.rl.obs_downsample, learning.obs_scales, seed=cfg.seed + start,
+        standardize_vectors=learning.standardize_vectors,
+        stagger_episodes=learning.stagger_episodes, privileged_state=learning.privileged_critic,
     )  # fmt: skip
     adapter.update_stats = statistics_update(cfg.rl, start)
-    check_training_memory(cfg, adapter.observation_space.shape[0])  # before skrl allocates
+    check_training_memory(cfg, adapter.observation_space.shape[0])
     models = _models(cfg, adapter)
     ckpt_interval, write_interval = cfg.intervals()
     agent = build_agent(
-        cfg.rl, algo, models, adapter.observation_space, adapter.action_space,
-        cfg.rl.num_envs, out, device=device, write_interval=write_interval,
-        checkpoint_interval=0,  # checkpoints are ours: written atomically below
-        state_space=adapter.state_space,
+        cfg, models, adapter.observation_space, adapter.action_space, out,
+        write_interval=write_interval, state_space=adapter.state_space,
     )  # fmt: skip
     if adapter.standardizer is not None:  # saved and restored with the agent
         agent.checkpoint_modules["obs_standardizer"] = adapter.standardizer
-    agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=steps))
-    ckpt_dir = out / "checkpoints"
-    if start_ckpt is not None:
-        load_agent(agent, start_ckpt.path)
-    elif cfg.init_from is not None:
-        warm_start(agent, cfg.init_from, adapter)
-    made_with = identity(task, cfg.rl.env_kwargs)
+    agent.init(trainer_cfg=SequentialTrainerCfg(timesteps=cfg.steps))
+    return _Run(adapter, models, agent, out / "checkpoints", ckpt_interval, write_interval)
+
+
+def _write_run_config(cfg: TrainConfig, out: Path, run: _Run, start: int, resume: bool) -> None:
+    """``config.json``: the resolved config, the interface, versions and benchmark identity;
+    a resumed run made under another identity is refused."""
+    made_with = identity(cfg.task, cfg.rl.env_kwargs)
     if resume:
         before = read_json(out / "config.json", "`sonogym train` run folder").get("identity")
         if before != made_with:
@@ -297,18 +334,25 @@ def _run_training(
             )
     resolved = {
         **cfg.to_dict(),
-        **_interface(adapter),
-        "checkpoint_interval": ckpt_interval,
-        "write_interval": write_interval,
+        **_interface(run.adapter),
+        "checkpoint_interval": run.ckpt_interval,
+        "write_interval": run.write_interval,
         "resumed_from": start,
-        "obs_version": get_task(task).obs_version(cfg.rl.env_kwargs.get("obs_mode")),
+        "obs_version": get_task(cfg.task).obs_version(cfg.rl.env_kwargs.get("obs_mode")),
         "identity": made_with,
         "versions": _versions(),
     }
     atomic_write_json(out / "config.json", to_jsonable(resolved))
-    if start_ckpt is None:
-        ckpt_dir.mkdir(parents=True, exist_ok=True)
-        save_agent(agent, ckpt_dir / "agent_0.pt")  # the initial weights
+
+
+def _train_loop(
+    cfg: TrainConfig, out: Path, run: _Run, start: int, progress: bool,
+    log: Callable[[str], None], on_checkpoint: CheckpointCallback | None,
+) -> TrainResult:  # fmt: skip
+    """Step the envs and the agent from ``start`` to ``cfg.steps``, writing checkpoints (and
+    one at Ctrl-C, saying how to resume)."""
+    task, algo, steps = cfg.task, cfg.algo, cfg.steps
+    agent, adapter, ckpt_dir = run.agent, run.adapter, run.ckpt_dir
     agent.enable_training_mode(True)
     obs, _ = adapter.reset()
     if log is not _quiet:
@@ -320,34 +364,13 @@ def _run_training(
     learning = to_jsonable(cfg.rl.learning)
     try:
         for t in range(start, steps):
-            set_log_std_ceiling(models["policy"], learning, t)
+            set_log_std_ceiling(run.models["policy"], learning, t)
             if cfg.rl.learning.kl_follows_sigma and getattr(agent, "scheduler", None) is not None:
-                agent.scheduler.kl_threshold = kl_threshold_at(cfg.rl, algo, t)
+                agent.scheduler.kl_threshold = kl_threshold_at(cfg.params, cfg.rl.learning, t)
             adapter.update_stats = statistics_update(cfg.rl, t)
-            agent.pre_interaction(timestep=t, timesteps=steps)
-            with torch.no_grad():
-                states = adapter.state()  # None unless the critic is privileged
-                actions, _ = agent.act(obs, states, timestep=t, timesteps=steps)
-                next_obs, reward, terminated, truncated, info = adapter.step(actions)
-                agent.record_transition(
-                    observations=obs,
-                    states=states,
-                    actions=actions,
-                    rewards=reward,
-                    next_observations=adapter.final_observations(info, next_obs),
-                    next_states=adapter.transition_states(info),
-                    terminated=terminated,
-                    truncated=truncated,
-                    infos=info,
-                    timestep=t,
-                    timesteps=steps,
-                )
-                _track_episode_metrics(agent, info)
-                recent.add(info)
-            agent.post_interaction(timestep=t, timesteps=steps)
-            obs = next_obs
+            obs = _step(agent, adapter, obs, t, steps, recent)
             done = t + 1
-            if done % ckpt_interval == 0 and done < steps:
+            if done % run.ckpt_interval == 0 and done < steps:
                 path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
                 clock.record(done)
                 if on_checkpoint is not None:
@@ -366,14 +389,39 @@ def _run_training(
     finally:
         if getattr(agent, "writer", None) is not None:
             agent.writer.flush()
-        env.close()
-        torch.set_num_threads(threads_before)
     bar.close()
     final = save_agent(agent, ckpt_dir / f"agent_{steps}.pt")
     clock.record(steps)
     if on_checkpoint is not None:
         on_checkpoint(steps, final, recent.pop())
     return TrainResult(out=out, checkpoint=final, steps=steps)
+
+
+def _step(agent, adapter: SkrlEnvAdapter, obs, t: int, steps: int, recent: _EpisodeMeans):
+    """One env step of the policy and what the agent records of it (its update, when one is
+    due, runs in ``post_interaction``); the next observation."""
+    agent.pre_interaction(timestep=t, timesteps=steps)
+    with torch.no_grad():
+        states = adapter.state()  # None unless the critic is privileged
+        actions, _ = agent.act(obs, states, timestep=t, timesteps=steps)
+        next_obs, reward, terminated, truncated, info = adapter.step(actions)
+        agent.record_transition(
+            observations=obs,
+            states=states,
+            actions=actions,
+            rewards=reward,
+            next_observations=adapter.final_observations(info, next_obs),
+            next_states=adapter.transition_states(info),
+            terminated=terminated,
+            truncated=truncated,
+            infos=info,
+            timestep=t,
+            timesteps=steps,
+        )
+        _track_episode_metrics(agent, info)
+        recent.add(info)
+    agent.post_interaction(timestep=t, timesteps=steps)
+    return next_obs
 
 
 class RunClock:
@@ -446,14 +494,9 @@ def _models(cfg: TrainConfig, adapter: SkrlEnvAdapter) -> dict:
         learning.mean_bound_penalty, learning.bounded_mean,
         0 if state is None else math.prod(state.shape),
     )  # fmt: skip
-    if cfg.algo == "ppo-sf":
-        from sonogym.agents.safety_filter import CostCritic
-
-        models["cost_critic"] = CostCritic(task, layout, space, device, net)
-    elif cfg.algo == "ppo-lag":
-        from sonogym.agents.lagrangian import CostValue
-
-        models["cost_value"] = CostValue(task, layout, space, device, net)
+    extra = get_algorithm(cfg.algo).models
+    if extra is not None:  # the algorithm's own networks (a cost critic, ...)
+        models.update(extra(ModelSetup(task, layout, space, device, net)))
     return models
 
 
@@ -632,10 +675,10 @@ def estimate_costs(cfg: TrainConfig, agent, adapter, obs) -> tuple[float, float]
     return step_s, update_s
 
 
-def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
+def kl_threshold_at(params: Any, learning: LearningParams, step: int) -> float:
     """The KL-adaptive learning rate's threshold at env step ``step`` (per env): the
-    algorithm's ``kl_threshold``, times (sigma_0 / ceiling)^2 where ``kl_follows_sigma`` is
-    set and sigma's ceiling anneals.
+    algorithm config's ``kl_threshold``, times (sigma_0 / ceiling)^2 where the task's
+    ``learning.kl_follows_sigma`` is set and sigma's ceiling anneals.
 
     Why: the KL of a fixed change of the Gaussian's mean grows as 1/sigma^2, so with a fixed
     threshold an annealed sigma (surgery: 0.05 -> 0.005) drives the learning rate down ~100x
@@ -644,7 +687,7 @@ def kl_threshold_at(rl: TaskRLConfig, algo: str, step: int) -> float:
     at every sigma. Off by default: on the surgery state task it kept the learning rate 3-8x
     higher and made the tilt worse (the reward barely paid for the tilt; the ``cpu`` preset's
     w5 = 50 fixed that)."""
-    base, learning = rl.params(algo).kl_threshold, rl.learning
+    base = params.kl_threshold
     if not learning.kl_follows_sigma or learning.final_log_std is None:
         return base
     init, final = learning.init_log_std, learning.final_log_std

@@ -85,19 +85,14 @@ from sonogym.envs.base import SingleEnv
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
-    CONV4,
-    SMALL_CONV4,
-    A2CParams,
     DatasetRecipe,
     DatasetSpec,
     Demo,
     EnvMemory,
     Feature,
     Metric,
-    PPOParams,
     TaskSpec,
     Track,
-    TrainingDefaults,
 )
 from sonogym.envs.task_env import TaskEnv
 from sonogym.geometry import relative_pose, wrap_angle
@@ -416,21 +411,8 @@ SPEC = TaskSpec(
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
     demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
+    agents="sonogym.tasks.navigation.agents:TRAINING",  # its RL defaults
     memory=EnvMemory(per_env=0.88e6, per_patient=39e6, load_peak=125e6),  # measured, bytes
-    training=TrainingDefaults(
-        algos=("ppo", "a2c"),
-        ppo=PPOParams(
-            rollouts=32, learning_epochs=5, mini_batches=32, learning_rate=1e-4, value_clip=0.2
-        ),
-        a2c=A2CParams(rollouts=16, mini_batches=32),
-        timesteps=500_000,
-        trunks={"paper": CONV4, "small": SMALL_CONV4},
-        # the single-phantom PPO of docs/results.md: 9,024 steps x 64 envs, ~45 CPU min
-        timesteps_cpu=9_024,
-        image_height=200,
-        # m -> per 10 mm: order 1 over the memory's window, up to ~15 from the scan's caudal end
-        obs_scales_by_mode={"us_memory": {"motion": 100.0}, "us_scan": {"motion": 100.0}},
-    ),
     dataset=DatasetSpec(
         features=(
             Feature(

@@ -96,16 +96,11 @@ from sonogym.envs.base import SingleEnv
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
-    CONV3,
-    SMALL_CONV3,
-    A2CParams,
     Demo,
     EnvMemory,
     Metric,
-    PPOParams,
     TaskSpec,
     Track,
-    TrainingDefaults,
 )
 from sonogym.envs.task_env import TaskEnv
 from sonogym.geometry import normalize, relative_pose, wrap_angle
@@ -612,15 +607,6 @@ SPEC = TaskSpec(
     demo=Demo(
         image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
     ),
+    agents="sonogym.tasks.reconstruction.agents:TRAINING",  # its RL defaults
     memory=EnvMemory(per_env=2.24e6, per_patient=165e6, load_peak=220e6),  # measured, bytes
-    training=TrainingDefaults(
-        algos=("ppo", "a2c"),
-        ppo=PPOParams(
-            rollouts=32, learning_epochs=3, mini_batches=4, learning_rate=3e-4, value_clip=0.1
-        ),
-        a2c=A2CParams(rollouts=64, mini_batches=32),
-        timesteps=500_000,
-        trunks={"paper": CONV3, "small": SMALL_CONV3},
-        timesteps_cpu=4_000,  # docs/results.md's submodular PPO: 4,000 steps x 64 envs
-    ),
 )

@@ -1,6 +1,7 @@
 """The task registry: every SonoGym task's ``TaskSpec``, by name and by Gymnasium id.
 
-Adding a task: write its module (env, config, expert, ``SPEC``) and add it to ``_MODULES``.
+Adding a task: write its module (env, config, expert, ``SPEC``) and add it to ``_MODULES``;
+its RL defaults go beside it in ``sonogym.tasks.<task>.agents`` (``TaskSpec.agents``).
 Nothing else in the package keeps a per-task table.
 """
 
@@ -42,16 +43,6 @@ def check_task_name(task: object, where: object) -> str:
             "was edited or not written by sonogym: restore it"
         )
     return task
-
-
-def check_algo(task: str, algo: str) -> TaskSpec:
-    """The task's spec; raise ``ValueError`` for an unknown task or an algorithm the task does
-    not support, naming the supported ones."""
-    spec = get_task(task)
-    algos = spec.training.algos
-    if algo not in algos:
-        raise ValueError(f"algorithm {algo!r} is not supported on {task}; supported: {list(algos)}")
-    return spec
 
 
 def env_config(task: str, options: dict):

@@ -81,7 +81,7 @@ distance term charges that path more than grazing the entrance. The cap keeps th
 walks deep in the unsafe region from costing so much (up to 90 per step at k = w6 uncapped)
 that a policy learns to stay out of the corridor.
 Cost c_t = 1[p_t+1 unsafe] (``info["cost"]``), for the transition a_t caused.
-The ``cpu`` training preset trains with w5 = 50 per rad (``SPEC.training.env_kwargs_cpu``): at
+The ``cpu`` training preset trains with w5 = 50 per rad (``sonogym.tasks.surgery.agents``): at
 the paper's 5, 4 deg of tilt cost what 1.2 mm of insertion earns, too little to make a policy
 hold the drill aligned (docs/envs.md, "Tilt weight of the cpu training preset"), and with
 ``CPU_ACTION_LIMIT``, a per-step box the drill arm realises in one step (docs/envs.md, "Action
@@ -121,21 +121,14 @@ from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
-    CONV3,
-    SMALL_CONV3,
-    A2CParams,
     DatasetRecipe,
     DatasetSpec,
     Demo,
     EnvMemory,
     Feature,
-    LearningParams,
     Metric,
-    PPOParams,
-    SafetyParams,
     TaskSpec,
     Track,
-    TrainingDefaults,
 )
 from sonogym.envs.surgery_scene import SIDES, Side, SurgeryScene
 from sonogym.envs.task_env import TaskEnv
@@ -628,62 +621,8 @@ SPEC = TaskSpec(
     demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
     # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
+    agents="sonogym.tasks.surgery.agents:TRAINING",  # its RL defaults
     memory=EnvMemory(per_env=0.81e6, per_patient=127e6, load_peak=136e6),  # measured, bytes
-    training=TrainingDefaults(
-        algos=("ppo", "a2c", "ppo-sf", "ppo-lag"),
-        ppo=PPOParams(
-            rollouts=16, learning_epochs=3, mini_batches=32, learning_rate=1e-4, value_clip=0.1
-        ),
-        a2c=A2CParams(rollouts=64, mini_batches=4),
-        timesteps=200_000,
-        trunks={"paper": CONV3, "small": SMALL_CONV3},
-        image_height=50,
-        learning=LearningParams(
-            # sigma = 0.05 action units: ~5 mm and 0.05 rad per command in a corridor ~11 mm wide
-            # (sigma = 1 clipped 77 % / 92 % of draws and moved the tip up to 6.4 mm sideways)
-            init_log_std=math.log(0.05),
-            # ... narrowing to 0.005 (~0.5 mm per command) over 100 k steps: at a constant ~0.035
-            # the state policy kept ~8 mm above the target, which lies on C_drill's boundary
-            final_log_std=math.log(0.005),
-            anneal_steps=100_000,
-            init_mean_gain=0.01,  # the untrained policy stands nearly still instead of flailing
-            # the policy mean stays inside the action box (networks.squash_into_box): with sigma
-            # small against the +-0.1 rad rotation box, means beyond it got no signal and drifted
-            bounded_mean=True,
-            # 600-step episodes in lockstep gave each 32-step rollout one phase of the task only
-            stagger_episodes=True,
-            # mean_bound_penalty stays 0: bounded_mean keeps the means in the box already, and the
-            # penalty alone did not keep seeds from collapsing (networks.SharedActorCritic)
-            standardize_vectors=True,  # poses in metres: mm differences at order 1
-            # ... with statistics frozen after 30 k steps: drifting statistics under a learning
-            # rate that had shrunk with sigma collapsed a trained seed at 68 k (train.py)
-            standardize_steps=30_000,
-        ),
-        # measured on 2 CPU cores (obs_mode="state", 64 envs): the paper's table (16 rollouts,
-        # 32 mini-batches of 32, 3 epochs, lr 1e-4) had reached only p_l after 0.33 M env steps
-        ppo_cpu=PPOParams(
-            rollouts=32, learning_epochs=5, mini_batches=4, learning_rate=3e-4, value_clip=0.1
-        ),
-        # w5 = 50 per rad, 10x the paper's (the env's default stays 5): at 5, 4 deg of tilt
-        # costs 0.35, a 1.2 mm insertion's worth, too little for a policy to centre its tilt
-        # the distance penalty for unsafe steps (k = 100 per m, capped at 10 mm) and the lean
-        # network: with --obs-mode state, 120 k steps x 64 envs reach docs/results.md's Table 1
-        # row in ~30 CPU min
-        # ... and a per-step action box the KUKA realises in one control step (5 mm lateral,
-        # 10 mm axial, 0.02 rad tilt, 0.001 rad spin): under the reference's box (30 mm,
-        # 0.1 rad) a command the joint speeds cannot follow is scaled down whole, so saturated
-        # rotation or lateral commands froze the drill above p_l and a seed learned to hover
-        # there (docs/envs.md)
-        env_kwargs_cpu={
-            "w5": 50.0,
-            "unsafe_distance_penalty": 100.0,
-            "action_limit": CPU_ACTION_LIMIT,
-        },
-        net_cpu="lean",
-        timesteps_cpu=120_000,
-        vector_splits={"pose": (("pos", 3), ("quat", 4))},
-        safety=SafetyParams(),
-    ),
     dataset=DatasetSpec(
         features=(
             *(_slice_feature(i) for i in range(5)),

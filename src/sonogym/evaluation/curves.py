@@ -25,21 +25,19 @@ from sonogym.evaluation.trained import load_run
 from sonogym.runs import atomic_write_json, atomic_write_text
 
 DEFAULT_METRIC = "Episode / return"
-#: Plot labels of the RL algorithms (paper's names); imitation policies' labels are in their
-#: registry (``sonogym.imitation.policies.registry``).
-ALGO_LABELS = {
-    "ppo": "PPO",
-    "a2c": "A2C",
-    "ppo-sf": "PPO + SF",
-    "ppo-lag": "PPO-Lag",
-}
 
 
 def algo_label(algo: str) -> str:
+    """A run's algorithm as plots and reports name it: the label its registry gives (RL:
+    ``sonogym.agents.algorithms``; imitation: ``sonogym.imitation.policies.registry``), else
+    the name itself (a run of an algorithm no longer registered)."""
+    from sonogym.agents.algorithms import algorithm_names, get_algorithm
     from sonogym.imitation.policies.registry import policy_for_algo
 
     spec = policy_for_algo(algo)
-    return spec.label if spec is not None else ALGO_LABELS.get(algo, algo)
+    if spec is not None:
+        return spec.label
+    return get_algorithm(algo).label if algo in algorithm_names() else algo
 
 
 def curve_label(c: Curve) -> str:

@@ -115,7 +115,12 @@ def export_pretrained(
     planned steps or has no evaluation. A failed export leaves nothing it made."""
     import re
 
-    from sonogym.agents.checkpoint import RL_RUN, export_acting_weights, run_config
+    from sonogym.agents.checkpoint import (
+        RL_RUN,
+        acting_modules,
+        export_acting_weights,
+        run_config,
+    )
     from sonogym.agents.train import read_times
     from sonogym.outputs import OutputPathError, check_folder, undo_on_failure
 
@@ -149,7 +154,7 @@ def export_pretrained(
     tmp = dest.with_name(f".{name}.partial{os.getpid()}")
     with undo_on_failure(tmp, dest):
         tmp.mkdir(parents=True)
-        export_acting_weights(checkpoint, tmp / WEIGHTS)
+        export_acting_weights(checkpoint, tmp / WEIGHTS, acting_modules(cfg["algo"]))
         atomic_write_json(tmp / "config.json", shipped_cfg)
         atomic_write_json(tmp / CARD, card)
         atomic_write_text(tmp / "model_card.md", card_markdown(card))

@@ -6,8 +6,9 @@ optionally overridden), runs ``trials`` episodes for each controller from the sa
 starts and returns the task's metrics (mean and std over episodes):
 
 * ``policy``: the run's newest checkpoint: an RL run deterministically (the Gaussian's mean
-  action; a ``ppo-sf`` run through its safety filter, ``sonogym.agents.safety_filter``),
-  an IL run as ``ILPolicy`` (ACT's temporal ensemble, Diffusion Policy's denoising);
+  action), as its algorithm acts (``AlgorithmSpec.acting``: a ``ppo-sf`` run through its
+  safety filter, and also ``unfiltered`` without it), an IL run as ``ILPolicy`` (ACT's
+  temporal ensemble, Diffusion Policy's denoising);
 * ``expert``: the task's expert (navigation, surgery) or heuristic raster (reconstruction),
   from the privileged ``info``, as ``sonogym demo`` runs it;
 * ``random``: actions uniform in the env's action box, from a seeded generator.
@@ -25,6 +26,7 @@ import contextlib
 import json
 import re
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +39,6 @@ from sonogym.runs import atomic_write_text, to_jsonable
 CONTROLLERS = ("policy", "expert", "random")
 #: Parallel envs of an evaluation unless given (at most one per trial).
 DEFAULT_ENVS = 16
-#: a ``ppo-sf`` run's policy without its safety filter (the PPO it trained: the filter acts
-#: only at test time), evaluated beside the filtered one by default
-UNFILTERED = "unfiltered"
 
 
 def table_stem(name: str) -> str:
@@ -70,8 +69,10 @@ def evaluate_run(
     ``run``: an RL run (``sonogym train``) or an IL run (``sonogym il-train``, on a dataset
     ``sonogym record`` wrote). ``checkpoint``: the checkpoint to evaluate (default: the run's
     newest readable one; an unreadable newer RL checkpoint is skipped with a warning naming
-    it). ``safety_filter``: a ``ppo-sf`` run's filter settings for this evaluation, keys
-    ``mode`` ("search" / "zero") and/or ``threshold`` (default: the run's); the filter acts
+    it). ``controllers``: by default the policy, the controllers its algorithm adds (a
+    ``ppo-sf`` run's ``unfiltered``), the expert and random. ``safety_filter``: test-time
+    settings of the run's algorithm (``Acting.settings``; a ``ppo-sf`` run's filter, keys
+    ``mode`` ("search" / "zero") and/or ``threshold``; default: the run's); the filter acts
     only at test time, so one trained run can be tested with several.
 
     ``protocol``: ``idt`` (default), ``odt-sim`` or ``odt-patient``
@@ -86,21 +87,13 @@ def evaluate_run(
     writable: checked before the episodes run. ``progress``: show the env's patients loading
     and the episodes on stderr.
     """
-    from sonogym.envs.identity import identity
-    from sonogym.envs.registry import get_task
-    from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
     from sonogym.evaluation.protocols import PROTOCOL_KEYS
     from sonogym.evaluation.protocols import protocol as get_protocol
 
     if name is not None and (not re.fullmatch(r"[A-Za-z0-9_.-]+", name) or name in (".", "..")):
-        raise ValueError(f"name {name!r}: use letters, digits, '_', '.' and '-' only")
+        raise ValueError(f"name {name!r}: use letters, digits, '_' and '-' only")
     trained = load_run(run)
-    known = CONTROLLERS + ((UNFILTERED,) if trained.algo == "ppo-sf" else ())
-    unknown = sorted(set(controllers) - set(known))
-    if unknown:
-        raise ValueError(f"unknown controllers {unknown}; choose from {list(known)}")
-    if trained.algo == "ppo-sf" and controllers == CONTROLLERS:
-        controllers = ("policy", UNFILTERED, "expert", "random")
+    controllers = check_controllers(trained, controllers)
     checkpoint = Path(checkpoint) if checkpoint is not None else newest_checkpoint(trained)
     proto = get_protocol(protocol or "idt", held_out_patients)
     trials = proto.trials if trials is None else trials
@@ -117,11 +110,11 @@ def evaluate_run(
     name = name or protocol or ("custom" if env_overrides else "idt")
     dest = check_writable(Path(out) if out is not None else trained.path, name)
 
-    filt = check_safety_filter(trained, safety_filter)
+    settings = acting_settings(trained, safety_filter)
     envs = min(trials, envs or DEFAULT_ENVS)
     episodes = run_controllers(
         trained, trials, envs, seed, device, overrides, controllers, checkpoint=checkpoint,
-        safety_filter=filt, progress=progress,
+        safety_filter=safety_filter, progress=progress,
     )  # fmt: skip
     results = {
         c: {
@@ -131,8 +124,41 @@ def evaluate_run(
         for c, ep in episodes.items()
     }
     spread = {c: distribution(trained.task, ep["metrics"]) for c, ep in episodes.items()}
+    run_info = _Evaluation(trained, name, seed, trials, envs, checkpoint, overrides, settings)
+    _write_evaluation(dest, run_info, episodes, results, spread, plot)
+    return results
+
+
+@dataclass(frozen=True)
+class _Evaluation:
+    """What an evaluation ran: the run, its name, seed, trials, envs, checkpoint, env
+    overrides and the algorithm's test-time settings."""
+
+    trained: TrainedRun
+    name: str
+    seed: int
+    trials: int
+    envs: int
+    checkpoint: Path
+    overrides: dict[str, Any]
+    settings: dict[str, Any]
+
+    def settings_entry(self) -> dict[str, Any]:
+        """{their name: the settings} for the files (empty where the algorithm has none)."""
+        if not self.settings:
+            return {}
+        return {_acting(self.trained).settings.name: self.settings}
+
+
+def _write_evaluation(dest: Path, e: _Evaluation, episodes, results, spread, plot: bool) -> None:
+    """The episode log, the trajectory figure (``plot``) and the table of evaluation ``e``."""
+    from sonogym.envs.identity import identity
+    from sonogym.envs.registry import get_task
+    from sonogym.evaluation.episodes import load_log, log_path, plot_trajectories, save_log
+
+    trained = e.trained
     track = get_task(trained.task).track
-    test_env = trained.evaluation_env_kwargs(overrides)
+    test_env = trained.evaluation_env_kwargs(e.overrides)
     made_with = {
         "identity": identity(trained.task, test_env),  # what the episodes ran on
         "train_identity": trained.config.get("identity"),  # what the policy learned on
@@ -142,13 +168,13 @@ def evaluate_run(
         "algo": trained.algo,
         "run": trained.path.resolve().name,
         "train_seed": trained.seed,
-        "protocol": name,
-        "eval_seed": seed,
-        "trials": trials,
-        "num_envs": envs,  # episode k ran in env k % num_envs: on patient (k % num_envs) % P
+        "protocol": e.name,
+        "eval_seed": e.seed,
+        "trials": e.trials,
+        "num_envs": e.envs,  # episode k ran in env k % num_envs: on patient (k % num_envs) % P
         "controllers": list(episodes),
-        "checkpoint": checkpoint.name,
-        **({"safety_filter": filt} if filt else {}),
+        "checkpoint": e.checkpoint.name,
+        **e.settings_entry(),
         "train_env": to_jsonable(trained.env_kwargs),
         "test_env": to_jsonable(test_env),
         **made_with,
@@ -156,24 +182,24 @@ def evaluate_run(
         "track_units": list(track.units),
     }
     log = save_log(
-        log_path(dest, name),
+        log_path(dest, e.name),
         meta,
         {c: ep["metrics"] for c, ep in episodes.items()},
         {c: ep["track"] for c, ep in episodes.items()},
     )
     if plot:
-        plot_trajectories(load_log(log), dest / f"trajectories-{name}.png")
-    stem = table_stem(name)
+        plot_trajectories(load_log(log), dest / f"trajectories-{e.name}.png")
+    stem = table_stem(e.name)
     table = {
         "task": trained.task,
-        "trials": trials,
-        "seed": seed,
+        "trials": e.trials,
+        "seed": e.seed,
         # each env count draws other starts: with trials and seed it fixes the figures
-        "num_envs": envs,
-        "protocol": name,
-        "checkpoint": checkpoint.name,
-        **({"safety_filter": filt} if filt else {}),
-        "env_overrides": to_jsonable(overrides),
+        "num_envs": e.envs,
+        "protocol": e.name,
+        "checkpoint": e.checkpoint.name,
+        **e.settings_entry(),
+        "env_overrides": to_jsonable(e.overrides),
         "test_env": to_jsonable(test_env),
         **made_with,
         "results": results,
@@ -181,7 +207,28 @@ def evaluate_run(
     }
     atomic_write_text(dest / f"{stem}.json", json.dumps(table, indent=1))
     atomic_write_text(dest / f"{stem}.md", format_table(results, spread))
-    return results
+
+
+def _acting(trained: TrainedRun):
+    """How the run's RL algorithm acts (``AlgorithmSpec.acting``); None for an IL run."""
+    if trained.kind != "rl":
+        return None
+    from sonogym.agents.algorithms import get_algorithm
+
+    return get_algorithm(trained.algo).acting
+
+
+def check_controllers(trained: TrainedRun, controllers: tuple[str, ...]) -> tuple[str, ...]:
+    """The controllers to evaluate: ``controllers``, or, where they are the default
+    (``CONTROLLERS``), also those the run's algorithm adds, right after "policy"; an unknown
+    one is refused, naming the known ones."""
+    acting = _acting(trained)
+    extra = acting.controllers if acting is not None else ()
+    known = ("policy", *extra, "expert", "random")
+    unknown = sorted(set(controllers) - set(known))
+    if unknown:
+        raise ValueError(f"unknown controllers {unknown}; choose from {list(known)}")
+    return known if tuple(controllers) == CONTROLLERS else tuple(controllers)
 
 
 def distribution(task: str, metrics: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
@@ -217,36 +264,25 @@ def check_writable(folder: Path, name: str) -> Path:
     return folder
 
 
-def check_safety_filter(trained: TrainedRun, settings: dict[str, Any] | None) -> dict[str, Any]:
-    """The safety filter a ``ppo-sf`` run is evaluated with: the run's mode and threshold,
-    with ``settings`` (keys ``mode``, ``threshold``; None values: the run's) applied; {} for
-    other runs. Raises ValueError for settings a run without a filter cannot take, an unknown
-    mode or a threshold outside [0, 1] (Q_c estimates a cost in {0, 1})."""
-    from sonogym.agents.checkpoint import filter_settings
-    from sonogym.agents.safety_filter import check_filter_mode
-
-    given = {k: v for k, v in (settings or {}).items() if v is not None}
-    if trained.algo != "ppo-sf":
+def acting_settings(trained: TrainedRun, given: dict[str, Any] | None) -> dict[str, Any]:
+    """The test-time settings a run is evaluated with (``evaluate_run``'s ``safety_filter``):
+    its algorithm's ``Acting.settings`` resolved with ``given`` (None values: the run's); {}
+    for a run whose algorithm takes none, which refuses any given, naming the algorithms that
+    take them."""
+    given = {k: v for k, v in (given or {}).items() if v is not None}
+    acting = _acting(trained)
+    hook = acting.settings if acting is not None else None
+    if hook is None:
         if given:
+            from sonogym.agents.algorithms import algorithm_names, get_algorithm
+
+            takers = [a for a in algorithm_names() if get_algorithm(a).acting.settings]
             raise ValueError(
-                f"safety filter settings {sorted(given)} apply to ppo-sf runs; "
+                f"safety filter settings {sorted(given)} apply to {', '.join(takers)} runs; "
                 f"{trained.path} is a {trained.algo} run"
             )
         return {}
-    unknown = sorted(set(given) - {"mode", "threshold"})
-    if unknown:
-        raise ValueError(f"unknown safety filter settings {unknown}; use mode and threshold")
-    threshold, mode = filter_settings(trained.config["task_config"])
-    out = {
-        "mode": given.get("mode", mode),
-        "threshold": float(given.get("threshold", threshold)),
-    }
-    check_filter_mode(out["mode"])
-    if not 0.0 <= out["threshold"] <= 1.0:
-        raise ValueError(
-            f"safety filter threshold must be in [0, 1] (a cost), got {out['threshold']}"
-        )
-    return out
+    return hook.resolve(trained.config, given)
 
 
 def controller_policy(
@@ -254,19 +290,16 @@ def controller_policy(
     safety_filter: dict[str, Any] | None = None,
 ):  # fmt: skip
     """The ``Policy`` of controller ``name`` in ``env``: the run's trained policy (its
-    ``checkpoint``, default the newest readable; a ``ppo-sf`` run's through its safety filter,
-    with ``safety_filter``'s mode / threshold if given; ``unfiltered``: without it), the
-    task's expert (or heuristic), or uniform random actions from ``seed``."""
-    if name == "policy":
-        policy = run_policy(trained, env, checkpoint, device)
-        filt = check_safety_filter(trained, safety_filter)
-        if filt:
-            policy.filter_mode, policy.threshold = filt["mode"], filt["threshold"]
-        return policy
-    if name == UNFILTERED and trained.algo == "ppo-sf":
-        policy = run_policy(trained, env, checkpoint, device)
-        policy.critic = None  # the same weights, acting without the filter
-        return policy
+    ``checkpoint``, default the newest readable) as its algorithm acts (a ``ppo-sf`` run's
+    through its safety filter, with ``safety_filter``'s mode / threshold if given) or as one of
+    the controllers its algorithm adds (``unfiltered``: without the filter), the task's expert
+    (or heuristic), or uniform random actions from ``seed``."""
+    acting = _acting(trained)
+    if name == "policy" or (acting is not None and name in acting.controllers):
+        if trained.kind != "rl":
+            return run_policy(trained, env, checkpoint, device)
+        settings = acting_settings(trained, safety_filter)
+        return run_policy(trained, env, checkpoint, device, controller=name, settings=settings)
     if name == "expert":
         from sonogym.envs.policy import ExpertPolicy
         from sonogym.envs.registry import get_task

@@ -33,7 +33,7 @@ class TrainedRun:
     path: Path
     kind: str  # "rl" or "il"
     task: str
-    algo: str  # ppo, a2c, ppo-sf, ppo-lag; an imitation policy's algo (act, dp)
+    algo: str  # an RL algorithm's name (ppo, ...); an imitation policy's algo (act, dp)
     seed: int
     env_kwargs: dict[str, Any]  # env options of training (tuples)
     config: dict[str, Any]  # the whole config.json
@@ -67,10 +67,14 @@ def newest_checkpoint(run: TrainedRun, warn=None) -> Path:
     return run.folder.require_checkpoint(warn=warn).path
 
 
-def run_policy(run: TrainedRun, env, checkpoint: str | Path | None = None, device="cpu"):
+def run_policy(
+    run: TrainedRun, env, checkpoint: str | Path | None = None, device="cpu",
+    controller: str = "policy", settings: dict[str, Any] | None = None,
+):  # fmt: skip
     """The run's trained ``Policy`` acting in ``env`` (an env of its task): an RL policy reads
-    the env's observations through its adapter, an IL policy through the task's dataset
-    features."""
+    the env's observations through its adapter and acts as its algorithm does (evaluation
+    controller ``controller``, test-time ``settings``: ``agents.checkpoint.rl_policy``), an IL
+    policy reads them through the task's dataset features."""
     if run.kind == "il":
         from sonogym.imitation.policy import load_il_policy
         from sonogym.imitation.record import obs_to_features
@@ -78,4 +82,5 @@ def run_policy(run: TrainedRun, env, checkpoint: str | Path | None = None, devic
         return load_il_policy(run.path, obs_to_features(run.task), device, checkpoint)
     from sonogym.agents.checkpoint import rl_policy
 
-    return rl_policy(run.path, env, checkpoint, device=device)
+    return rl_policy(run.path, env, checkpoint, device=device, controller=controller,
+                     settings=settings)  # fmt: skip

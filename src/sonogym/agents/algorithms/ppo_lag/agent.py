@@ -1,4 +1,5 @@
-"""PPO-Lagrangian (``ppo-lag``), surgery only: PPO with a cost critic and a PID multiplier.
+"""PPO-Lagrangian (``ppo-lag``), on tasks with a cost (surgery): PPO with a cost value network
+and a PID multiplier.
 
 Per update (reference_implementation.md §7.2, Stooke et al. 2020):
 

@@ -1,4 +1,5 @@
-"""PPO + safety filter (``ppo-sf``; the paper's modified SafeRPlan), surgery only.
+"""PPO + safety filter (``ppo-sf``; the paper's modified SafeRPlan): the skrl agent, its cost
+critic and the test-time filter; on tasks with a cost (surgery).
 
 Training is PPO plus a cost critic Q_c(o_t, a_t) regressed (MSE) on the immediate cost
 c_t = 1[p_t+1 unsafe] (``info["cost"]``, the transition a_t caused; no bootstrapping), as the
@@ -31,12 +32,15 @@ not applied while training (reference).
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from skrl.agents.torch.ppo import PPO, PPO_CFG
 from torch import nn
 
+from sonogym.agents.algorithms.ppo_sf.config import check_filter_mode, filter_settings
+from sonogym.agents.checkpoint import RLPolicy, load_module, load_policy, newest_checkpoint, run_net
 from sonogym.agents.networks import VECTOR_MLP, CostModel, mlp
 
 
@@ -119,18 +123,6 @@ class PPOSafetyFilter(PPO):
         self.track_data("Loss / Cost critic loss", total / max(count, 1))
 
 
-#: How the filter replaces an action whose Q_c exceeds the threshold: "zero" (the paper and
-#: reference: no motion) or "search" (ours: the nearest candidate action the critic predicts
-#: safe; see :func:`filter_actions`).
-FILTER_MODES = ("zero", "search")
-
-
-def check_filter_mode(mode: str) -> None:
-    """Raise ValueError naming the known modes unless ``mode`` is one of ``FILTER_MODES``."""
-    if mode not in FILTER_MODES:
-        raise ValueError(f"unknown safety filter mode {mode!r}; choose from {list(FILTER_MODES)}")
-
-
 def candidate_actions(actions: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
     """(K, N, A) candidates for the search filter, K = 2 A + 4, the policy's action first:
     the action, it halved and quartered, each component zeroed in turn, each component negated
@@ -194,3 +186,42 @@ def filter_actions(
         pick = torch.where(guarded, nearest_safe, torch.zeros_like(nearest_safe))  # (N,)
         chosen = cands.gather(0, pick.view(1, -1, 1).expand(1, -1, cands.shape[-1]))[0]
         return chosen, pick != 0
+
+
+class SafetyFilteredPolicy(RLPolicy):
+    """A ``ppo-sf`` run acting deterministically through its safety filter
+    (``filter_mode`` "search": an action with Q_c > threshold becomes the nearest candidate
+    predicted safe, except where ``info["safe"]`` says the tip is already outside the safe set;
+    "zero": it becomes 0)."""
+
+    def __init__(
+        self, model, adapter, critic: CostCritic, threshold: float = 0.5,
+        filter_mode: str = "search",
+    ):  # fmt: skip
+        super().__init__(model, adapter)
+        self.critic = critic
+        self.threshold = threshold
+        self.filter_mode = filter_mode
+
+    def act(self, obs, info) -> torch.Tensor:
+        x = self.adapter.flatten(obs)
+        action = self.model.act({"observations": x}, role="policy")[1]["mean_actions"]
+        action, _ = filter_actions(
+            self.critic, x, action, self.threshold, self.filter_mode, info.get("safe")
+        )
+        return action
+
+
+def load_cost_critic(run: str | Path, checkpoint: str | Path | None = None, device: str = "cpu"):
+    """(cost critic in eval mode, filter threshold, filter mode) of a ``ppo-sf`` run."""
+    policy, cfg = load_policy(run, checkpoint, device)
+    if cfg["algo"] != "ppo-sf":
+        raise ValueError(f"{run} is a {cfg['algo']} run; only ppo-sf runs have a cost critic")
+    if checkpoint is None:
+        checkpoint = newest_checkpoint(Path(run))
+    critic = CostCritic(
+        cfg["task"], policy.encoder.layout, policy.action_space, device, run_net(cfg)
+    )
+    load_module(critic, checkpoint, "cost_critic", device)
+    critic.eval()
+    return critic, *filter_settings(cfg)

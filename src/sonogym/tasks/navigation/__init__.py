@@ -1,0 +1,1 @@
+"""The navigation task's learning configs (``agents``)."""

@@ -1,0 +1,1 @@
+"""The reconstruction task's learning configs (``agents``)."""

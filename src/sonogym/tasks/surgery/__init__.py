@@ -1,0 +1,1 @@
+"""The surgery task's learning configs (``agents``)."""

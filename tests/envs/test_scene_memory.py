@@ -104,7 +104,7 @@ def test_navigation_loads_its_patients_one_at_a_time_into_the_same_slicer(monkey
     ]  # fmt: skip
     scene = env.scene
     assert isinstance(scene, ProbeScene) and scene.slicer.cropped
-    whole_first = ProbeScene(env.cfg, 4, env.device, render=True, keep_volumes=True)
+    whole_first = ProbeScene(env.cfg, 4, env.device, render=True, keep_volumes=True, aimed=True)
     assert whole_first.slicer.nbytes == scene.slicer.nbytes
     for k in ("_ct", "_nibbles", "_palette", "_offsets", "_lim"):
         assert torch.equal(getattr(whole_first.slicer, k), getattr(scene.slicer, k)), k

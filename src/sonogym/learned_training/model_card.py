@@ -191,10 +191,10 @@ def model_card(work: str | Path) -> dict:
     from torchmetrics.functional.image import structural_similarity_index_measure as ssim
 
     pair = [[float(ssim(a, b, data_range=1.0)) for b in outs] for a in outs]
-    from sonogym.envs.identity import file_digest
+    from sonogym.envs.identity import net_digests
 
-    digests = {f"net{k}": file_digest(recipe.run_dir(work, k) / "generator.pt")
-               for k in range(recipe.NUM_NETS)}  # fmt: skip
+    # the shipped files' (``recipe.ship`` rewrites each generator's metadata): what runs record
+    digests = net_digests(tuple(range(recipe.NUM_NETS)))
     card = {"nets": nets, "digests": digests, "pairwise_ssim": pair,
             "common_input": "net 0 unseen-phantom CT",
             "recipe": {"image_size": recipe.IMAGE_SIZE, "pixel_spacing_m": recipe.PIXEL_SPACING,

@@ -3,7 +3,7 @@
     python benchmarks/envs.py [--envs 16 128] [--steps 50] [--device cpu]
         [--simulator learned --learned-precision bfloat16]
 
-Prints one table. Budget (DESIGN.md §7): >= 500 env-steps/s for 128 navigation envs on 2 cores.
+Prints one table. Budget: >= 500 env-steps/s for 128 navigation envs on 2 cores.
 Phantom seed 0 at the default 1 mm; navigation with and without the arm in the loop. The last
 column is a partial reset of one env in eight (an autoreset's cost), median of 5.
 """

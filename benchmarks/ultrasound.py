@@ -2,7 +2,7 @@
 
 Prints one table: for 1, 10, 100 and 400 envs, both models, on CPU (and on CUDA when present):
 slice, simulate and total time per batch (median of --repeats, after one warm-up), images/s, and
-the memory the patient, the slicer and the simulator hold. Budget (DESIGN.md §7): 100 images of
+the memory the patient, the slicer and the simulator hold. Budget: 100 images of
 200 x 150, slice + simulate, <= 0.10 s on 2 CPU cores, <= 2 ms on one GPU, <= 300 MB per patient.
 
     python benchmarks/ultrasound.py                  # defaults: seed-0 phantom, 1 mm, 2 threads

@@ -15,7 +15,7 @@ LAYOUTS = {
     "reconstruction": (ObsLayout(("path_length", "reconstruction"), ((1,), (40, 40, 40))), 4),
     "surgery": (ObsLayout(("image", "pose"), ((5, 50, 37), (7,))), 6),
 }
-# conv output sizes the reference lists (reference_implementation.md §7.1)
+# conv output sizes the reference lists (the authors' reference code's)
 FLAT = {"navigation": 64 * 20 * 14, "reconstruction": 64 * 5 * 5, "surgery": 64 * 8 * 4}
 
 

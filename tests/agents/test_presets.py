@@ -54,7 +54,7 @@ def test_cpu_preset_resolves_per_task():
 
 def test_cpu_preset_env_options_are_the_tasks_and_explicit_ones_win():
     # the cpu preset trains surgery with w5 = 50 per rad; the env's default and the paper
-    # preset keep the paper's 5 (DESIGN.md section 5)
+    # preset keep the paper's 5 (docs/design.md)
     from sonogym.envs.surgery import SurgeryConfig
 
     assert SurgeryConfig().w5 == 5.0

@@ -575,7 +575,7 @@ def test_bad_options_raise():
 
 def test_no_reward_trap_outside_the_safe_set():
     """The expert beats standing still, which beats every way of leaving the safe set or
-    giving the insertion back (DESIGN.md §5, amended; the paper's "0 otherwise" paid +1.2 for
+    giving the insertion back (docs/design.md; the paper's "0 otherwise" paid +1.2 for
     a constant push along the drill axis). Six policies, four envs each, in one batch."""
     k, names = 4, ["expert", "still", "push-down", "dither", "deep, back out", "deep, out sideways"]
     n = k * len(names)

@@ -8,7 +8,7 @@ and a scalar value head. skrl calls the same object as ``models["policy"]`` and 
 (reference: ``separate: False``).
 
 Inputs are the adapter's flat observations; ``ObsLayout`` un-flattens them. Architectures
-(reference_implementation.md §7.1; ReLU convs without padding, ELU MLPs):
+(the authors' reference code's; ReLU convs without padding, ELU MLPs):
 
 * navigation: image (1, H, W) -> conv 32 k8 s2, 64 k4 s2, 64 k4 s2, 64 k3 s1 -> flatten ->
   [512, 256, 128]. With the adapter's ``obs_downsample`` F the image is (1, H/F, W/F) and the

@@ -1,7 +1,7 @@
 """Vertebra frames and planned pedicle-screw trajectories, computed from the vertebra masks.
 
 One code path for phantoms and real TotalSegmentator data, ground-truth masks or model output,
-at 0.5-3 mm. Rules (ultrasound_physics.md §4-5):
+at 0.5-3 mm. Rules (docs/anatomy.md):
 
 * Vertebra frame: origin at the vertebral-body centroid (the vertebra's voxels in front of the
   canal's anterior border, within 30 mm of it laterally, cut in the vertebra's own axially

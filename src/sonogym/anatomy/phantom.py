@@ -11,7 +11,7 @@ fat-lined fascial envelopes that meet the midline down at the spinous tips with 
 between them, the supra- and interspinous ligaments in the midline, the ligamentum flavum behind
 the canal, subcutaneous fat thicker on the flanks and over the midline furrow, and skin.
 Dimensions and their spread follow published adult morphometry (docs/anatomy.md,
-ultrasound_physics.md §4).
+docs/anatomy.md).
 
 The generator is a pipeline of layer builders, each painting one kind of tissue over what the
 earlier ones left (labels are overwritten, CT blended by partial volume), so their order is
@@ -180,7 +180,7 @@ def _level_variation(seed: int, p: PhantomParams) -> np.ndarray:
     return z * np.array(std)
 
 
-# Tissue HU (ultrasound_physics.md §4c).
+# Tissue HU: typical CT values of each tissue (docs/anatomy.md).
 _HU = {
     "air": -1000.0,
     "soft": 20.0,

@@ -4,11 +4,11 @@ The skin over the back is the surface y = h(x, z) (the patient lies prone; y is 
 back is the smallest-y body surface). ``SkinSurface`` stores h on the patient's (x, z) voxel grid
 with sub-voxel accuracy and answers batched bilinear queries at any (x, z) in metres.
 
-Surface command (DESIGN.md §4, §5): (x, z, yaw, tilt) ->
+Surface command (docs/design.md): (x, z, yaw, tilt) ->
   * z_U0 = inward normal n(x, z) (smoothed, so a 75 mm probe face sees a stable direction);
   * x_U = the tangent vector whose frontal-plane (x-z) projection points along
     (cos yaw, 0, sin yaw): yaw is exactly the angle of the probe's lateral axis in the frontal
-    plane, from +x_P toward +z_P (DESIGN.md §5), whatever the skin's slope;
+    plane, from +x_P toward +z_P (docs/design.md), whatever the skin's slope;
   * y_U0 = z_U0 x x_U;
   * tilt rotates about x_U: y_U = y_U0 cos t + z_U0 sin t, z_U = z_U0 cos t - y_U0 sin t;
   * the probe-face centre sits on the skin point (x, h(x, z), z).

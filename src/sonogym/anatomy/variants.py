@@ -23,7 +23,7 @@ source's patient frame, measured on its landmarks), composes, in this order from
 Ranges (``VARIANT_RANGES``) keep each parameter within about one standard deviation of adult
 morphometry around the source subject: lumbar lordosis 40-60 deg (SD about 10 deg, Been & Kalichman
 2014); lumbar body height and width SD 5-8 % of the mean (Zhou et al. 2000, Panjabi 1992);
-posterior soft tissue over the laminae 35-65 mm (ultrasound_physics.md §4).
+posterior soft tissue over the laminae 35-65 mm (docs/anatomy.md).
 """
 
 from __future__ import annotations

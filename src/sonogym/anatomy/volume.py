@@ -1,6 +1,6 @@
 """A patient's volumes: CT in Hounsfield units, a label map, and the frame that places them.
 
-Frames (DESIGN.md §3): the patient frame {P} is RAS+ in metres (+x toward the patient's right,
+Frames (docs/design.md): the patient frame {P} is RAS+ in metres (+x toward the patient's right,
 +y anterior, +z superior). Volumes are stored in canonical RAS voxel order, axis-aligned: voxel
 (i, j, k) sits at ``origin + spacing * (i, j, k)``. The patient lies prone, so the back's skin is
 the smallest-y body surface.

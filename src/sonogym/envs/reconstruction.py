@@ -41,12 +41,12 @@ position m, axis-angle rad), as ``info["state"]``.
 0.2 rad), the documented clipping. dx moves along x_U, dy along the skin tangent
 y_U0 = n x x_U (the untilted elevation axis, n the inward skin normal at the reached probe),
 both restricted to the frontal (x, z) plane as in navigation; dalpha rotates about the normal
-(yaw), dbeta tilts about x_U (DESIGN.md §5, the paper's "pitch"). Documented clamps: the command
+(yaw), dbeta tilts about x_U (docs/design.md, the paper's "pitch"). Documented clamps: the command
 (x, z) stays within ``workspace_half_extent`` (60 mm) of the vertebra's centre, yaw within
 ``yaw_range`` (the navigation arm's workspace, pi +- 2.5 rad), tilt within +-``tilt_limit``
 (0.4 rad).
 
-**Reward.** The marginal gain of the trajectory objective (paper, DESIGN.md §5):
+**Reward.** The marginal gain of the trajectory objective (paper, docs/design.md):
 
     F(tau_0:t) = |M_0:t| - w2 sum_h (|dx_h| + |dy_h|) - w2 w3 sum_h (|dalpha_h| + |dbeta_h|)
 
@@ -135,7 +135,7 @@ class ReconstructionConfig(SceneConfig):
     volume_size: int = 40  # voxels per side of the reconstruction cube (paper)
     voxel_size: float = 0.003  # m (paper)
     w2: float = 0.01  # objective weight per mm of path (paper)
-    w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (DESIGN.md §5)
+    w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (docs/design.md)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -11,7 +11,7 @@ along the trajectory from entry to target. In {G}:
   corridor radius;
 * C_free = {p_z <= -l} (points with p_z = -l count as C_free);
 * everything else is unsafe; l = 50 mm, p_l = [0, 0, -l] lies on the trajectory 50 mm before
-  the target (DESIGN.md §5).
+  the target (docs/design.md).
 
 Probe and drill poses are those the arms reached (forward kinematics after velocity-limited IK).
 
@@ -53,7 +53,7 @@ theta is the angle between the drill axis z_D and z_G (the drill is symmetric ab
 Within C_free this is the paper's w4 (|p_t - p_l| - |p_t+1 - p_l|) + w5 (theta_t - theta_t+1),
 within C_drill the paper's w6 (|p_t| - |p_t+1|) + w5 (...); the two agree at p_l.
 
-**Deviation from the paper** (DESIGN.md §5, amended): the paper pays 0 outside the safe set.
+**Deviation from the paper** (docs/design.md): the paper pays 0 outside the safe set.
 That makes leaving free, and with the drill's reach a constant "push along the drill axis"
 ends its episodes outside the safe set with more return than standing still (0); the
 reference avoided the trap with dense shaping everywhere. Here the unsafe region keeps the

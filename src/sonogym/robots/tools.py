@@ -3,7 +3,7 @@
 A tool is rigidly mounted on an arm's flange; its tip frame is a fixed pose in the flange frame
 (the flange frame's z points out of the flange). The tip is the frame the arm controls:
 
-* probe: the probe frame {U} (DESIGN.md §3): origin at the centre of the probe face, x_U along
+* probe: the probe frame {U} (docs/design.md): origin at the centre of the probe face, x_U along
   the transducer array (image lateral axis), y_U elevation, z_U along the beam into the body;
 * drill: the drill-tip frame {D}: origin at the tip of the bit, z_D along the drill axis,
   pointing out of the tool (into the bone).

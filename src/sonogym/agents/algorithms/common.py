@@ -1,7 +1,7 @@
 """What the built-in algorithms' builders share: skrl's on-policy settings from a config (PPO,
 A2C and the PPO variants), the reward scale, and making the agent with its rollout memory.
 
-What the configs leave open comes from the reference (reference_implementation.md §7.1):
+What the configs leave open comes from the authors' reference code:
 KLAdaptiveLR on ``kl_threshold``, values standardised by skrl's RunningStandardScaler,
 observations not normalised here (``SkrlEnvAdapter`` scales or standardises them).
 

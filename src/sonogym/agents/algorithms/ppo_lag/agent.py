@@ -1,7 +1,7 @@
 """PPO-Lagrangian (``ppo-lag``), on tasks with a cost (surgery): PPO with a cost value network
 and a PID multiplier.
 
-Per update (reference_implementation.md §7.2, Stooke et al. 2020):
+Per update (as the reference code does; Stooke et al. 2020):
 
 * cost advantages and returns by GAE on c_t = ``info["cost"]`` (same gamma, lambda; time-limit
   bootstrapping as for rewards) with a separate cost value network V_c;

@@ -3,7 +3,7 @@ critic and the test-time filter; on tasks with a cost (surgery).
 
 Training is PPO plus a cost critic Q_c(o_t, a_t) regressed (MSE) on the immediate cost
 c_t = 1[p_t+1 unsafe] (``info["cost"]``, the transition a_t caused; no bootstrapping), as the
-reference does (reference_implementation.md §7.3). Differences from the reference, on purpose:
+reference code does. Differences from the reference, on purpose:
 the cost critic has its own Adam optimiser (the reference shares one with the policy and
 clips only the policy's gradients), and because our cost has no one-step lag, Q_c learns
 "this action leads to an unsafe state", not "the current state is unsafe".

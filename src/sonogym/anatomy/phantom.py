@@ -10,8 +10,7 @@ them lie the paraspinal muscles (autochthon) under the thoracolumbar fascia, con
 fat-lined fascial envelopes that meet the midline down at the spinous tips with fat in the cleft
 between them, the supra- and interspinous ligaments in the midline, the ligamentum flavum behind
 the canal, subcutaneous fat thicker on the flanks and over the midline furrow, and skin.
-Dimensions and their spread follow published adult morphometry (docs/anatomy.md,
-docs/anatomy.md).
+Dimensions and their spread follow published adult morphometry (docs/anatomy.md).
 
 The generator is a pipeline of layer builders, each painting one kind of tissue over what the
 earlier ones left (labels are overwritten, CT blended by partial volume), so their order is

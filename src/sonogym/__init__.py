@@ -4,6 +4,6 @@ Plain PyTorch, batched over environments, CPU or CUDA. ``import sonogym`` regist
 with Gymnasium (``SonoGym/Navigation-v0``, ...). See README.md and docs/.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 from sonogym import envs as _envs  # noqa: E402,F401  (registers the Gymnasium ids)

@@ -318,6 +318,18 @@ def train(
             "run's times.json."
         ),
     ] = None,
+    dagger_expert: Annotated[
+        str | None,
+        typer.Option(
+            help="Warm-start the policy by DAgger from this privileged expert before RL: "
+            "'expert' (the task's) or a further one (navigation: 'level-counting'). Needs "
+            "--dagger-steps; docs/agents.md."
+        ),
+    ] = None,
+    dagger_steps: Annotated[
+        int | None,
+        typer.Option(help="Env steps per env of the DAgger warm start (8 rounds, beta 1 -> 0)."),
+    ] = None,
 ) -> None:
     """Train an RL agent; TensorBoard logs, checkpoints and config.json go to the run directory.
     Settings resolve from the task's defaults, then the device preset, then these options."""
@@ -337,11 +349,12 @@ def train(
             pats, simulator = None, None
         settings = parse_settings(set_)
         init_from = shipped_or_path(init_from)
+        dagger = _dagger_option(task, dagger_expert, dagger_steps)
     res = run_train(
         task, algo, seed=seed, out=out, patients=pats, simulator=simulator,
         env_kwargs=env_kwargs, resume=resume, force=force, log=typer.echo,
         checkpoint_interval=checkpoint_every, settings=settings, init_from=init_from,
-        **options.train_kwargs(),
+        dagger=dagger, **options.train_kwargs(),
     )  # fmt: skip
     typer.echo(f"trained {res.steps} steps; final checkpoint {res.checkpoint}")
 
@@ -480,6 +493,22 @@ def _bad_parameter() -> Iterator[None]:
         yield
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+
+
+def _dagger_option(task: str, expert: str | None, steps: int | None):
+    """``--dagger-expert`` and ``--dagger-steps`` as a ``DaggerConfig`` (None: neither
+    given); one without the other, an expert the task lacks or too few steps are refused."""
+    if expert is None and steps is None:
+        return None
+    if expert is None or steps is None:
+        raise ValueError("--dagger-expert and --dagger-steps go together: pass both, or neither")
+    from sonogym.agents.dagger import DaggerConfig, check_expert
+
+    check_expert(task, expert)
+    if steps < 1:
+        raise ValueError(f"--dagger-steps must be a positive integer, got {steps}")
+    iterations = DaggerConfig.__dataclass_fields__["iterations"].default
+    return DaggerConfig(expert, steps, iterations=min(iterations, steps))
 
 
 def shipped_or_path(given: Path | None) -> Path | None:

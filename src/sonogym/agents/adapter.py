@@ -300,6 +300,11 @@ class SkrlEnvAdapter:
         """Env observations (Box tensor or Dict of tensors) -> (N, layout.size) float32,
         vector entries standardised when enabled (``update``: add these observations to the
         statistics first)."""
+        return self.standardize(self.flatten_raw(obs), update)
+
+    def flatten_raw(self, obs: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
+        """``flatten`` without the standardisation: downsampled, scaled, flat (N, layout.size)
+        float32 (what a sample store keeps, standardised later with ``standardize``)."""
         entries = obs if isinstance(obs, dict) else {"_": obs}
         parts = []
         for key, shape in zip(self.layout.keys, self.layout.shapes, strict=True):
@@ -312,7 +317,11 @@ class SkrlEnvAdapter:
             if scale is not None:
                 x = x * scale
             parts.append(x.reshape(x.shape[0], -1))
-        flat = torch.cat(parts, dim=-1)
+        return torch.cat(parts, dim=-1)
+
+    def standardize(self, flat: torch.Tensor, update: bool = False) -> torch.Tensor:
+        """``flatten_raw``'s (N, layout.size) with the vector entries standardised where
+        enabled (``update``: add them to the statistics first), in place; else unchanged."""
         if self.standardizer is not None:
             cols = self._vector_cols
             flat[:, cols] = self.standardizer(flat[:, cols], update=update)

@@ -23,6 +23,7 @@ from sonogym.agents.algorithms import (
     check_algo,
     get_algorithm,
 )
+from sonogym.agents.dagger import DaggerConfig, check_expert
 from sonogym.agents.task_defaults import LearningParams, training_defaults
 from sonogym.envs.base import check_number_fields
 from sonogym.envs.registry import env_config, get_task
@@ -146,9 +147,14 @@ class TrainConfig:
     #: the checkpoint the weights started from instead of random ones (``warm_start_source``:
     #: checkpoint, run, steps, cpu_s, wall_s of that run by then); None: a fresh start
     init_from: dict[str, Any] | None = None
+    #: a DAgger warm start of the policy's mean before RL (``sonogym.agents.dagger``); None:
+    #: none
+    dagger: DaggerConfig | None = None
 
     def __post_init__(self) -> None:
         spec = check_algo(self.task, self.algo)
+        if self.dagger is not None:
+            check_expert(self.task, self.dagger.expert)
         if not isinstance(self.params, spec.config_cls):
             raise TypeError(
                 f"{self.algo} trains with a {spec.config_cls.__name__}, got "
@@ -218,6 +224,7 @@ class TrainConfig:
             "task_config": to_jsonable(self.rl),
             "algo_params": to_jsonable(self.params),
             "init_from": self.init_from,
+            "dagger": None if self.dagger is None else self.dagger.to_dict(),
         }
 
     @classmethod
@@ -243,6 +250,7 @@ class TrainConfig:
             checkpoint_interval=d.get("checkpoint_interval"),
             write_interval=d.get("write_interval"),
             init_from=d.get("init_from"),
+            dagger=DaggerConfig(**d["dagger"]) if d.get("dagger") else None,
         )
 
 

@@ -12,8 +12,9 @@ Writes into ``out/``:
   episode metrics under ``Episode / <metric>``);
 * ``checkpoints/agent_<t>.pt``: agent checkpoints (policy = value module, optimiser, value
   standardiser, observation standardiser) after t env steps per env, written atomically
-  (temporary file + rename); ``agent_0.pt`` holds the initial weights, the newest one the
-  final policy. They load with ``weights_only=True`` (``checkpoint.read_checkpoint``).
+  (temporary file + rename); ``agent_0.pt`` holds the initial weights (after the DAgger warm
+  start where the run has one: ``sonogym.agents.dagger``), the newest one the final policy.
+  They load with ``weights_only=True`` (``checkpoint.read_checkpoint``).
 
 The loop is skrl's sequential trainer loop written out, for one reason: with SAME_STEP
 autoreset the observation after a truncation is the next episode's first one, so the loop hands
@@ -63,6 +64,7 @@ from sonogym.agents.configs import (
     resume_config,
     to_jsonable,
 )
+from sonogym.agents.dagger import DaggerConfig, run_dagger
 from sonogym.agents.networks import log_std_ceiling, make_models
 from sonogym.agents.task_defaults import LearningParams
 from sonogym.envs.identity import identity, stamp
@@ -115,6 +117,7 @@ def train(
     write_interval: int | None = None,
     settings: dict[str, Any] | None = None,
     init_from: str | Path | None = None,
+    dagger: DaggerConfig | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> TrainResult:
@@ -135,6 +138,9 @@ def train(
         init_from: an RL checkpoint (``RUN/checkpoints/agent_<t>.pt``) or a shipped policy's
             folder whose weights the run starts from instead of random ones
             (``warm_start_source``); fine-tuning.
+        dagger: warm-start the policy's mean by DAgger from a privileged expert before the
+            algorithm's first step (``sonogym.agents.dagger``; after ``init_from``'s weights
+            are loaded, where both are given).
         progress: show the progress with the ETA (``sonogym.progress``: a bar on a terminal,
             a line every few percent in a log); log: where the start summary goes (default:
             printed when ``progress``).
@@ -151,10 +157,10 @@ def train(
     )  # fmt: skip
     out = Path(out or f"runs/{task}-{algo}-s{seed or 0}")
     if resume:
-        if settings or init_from is not None:
+        if settings or init_from is not None or dagger is not None:
             raise ValueError(
-                "settings and init_from define a new run; a resumed run keeps its own. Drop "
-                "them to continue the run, or start a new one in another out folder"
+                "settings, init_from and dagger define a new run; a resumed run keeps its own. "
+                "Drop them to continue the run, or start a new one in another out folder"
             )
         if not (out / "config.json").is_file():
             raise FileNotFoundError(f"nothing to resume: {out} holds no training run")
@@ -172,6 +178,8 @@ def train(
             cfg = apply_settings(cfg, settings)
         if init_from is not None:
             cfg = dataclasses.replace(cfg, init_from=warm_start_source(init_from, cfg))
+        if dagger is not None:
+            cfg = dataclasses.replace(cfg, dagger=dagger)
     if log is None:
         log = print if progress else _quiet
     return run_training(cfg, out, resume=resume, force=force, progress=progress, log=log)
@@ -258,6 +266,10 @@ def _run_training(
             load_agent(run.agent, start_ckpt.path)
         elif cfg.init_from is not None:
             warm_start(run.agent, cfg.init_from, run.adapter)
+        if start_ckpt is None and cfg.dagger is not None:
+            run.dagger = run_dagger(
+                cfg.dagger, cfg.task, run.adapter, run.models["policy"], cfg.seed, log
+            )
         _write_run_config(cfg, out, run, start, resume)
         if start_ckpt is None:
             run.ckpt_dir.mkdir(parents=True, exist_ok=True)
@@ -279,6 +291,7 @@ class _Run:
     ckpt_dir: Path
     ckpt_interval: int
     write_interval: int
+    dagger: dict[str, Any] | None = None  # what the DAgger warm start gave (``run_dagger``)
 
 
 def _resume_point(cfg: TrainConfig, out: Path, log: Callable[[str], None]):
@@ -325,7 +338,9 @@ def _write_run_config(cfg: TrainConfig, out: Path, run: _Run, start: int, resume
     a resumed run made under another identity is refused."""
     made_with = identity(cfg.task, cfg.rl.env_kwargs)
     if resume:
-        before = read_json(out / "config.json", "`sonogym train` run folder").get("identity")
+        saved = read_json(out / "config.json", "`sonogym train` run folder")
+        before = saved.get("identity")
+        run.dagger = saved.get("dagger_result")  # the warm start ran when the run began
         if before != made_with:
             was = stamp(before) if before else "none recorded: an older sonogym"
             raise ValueError(
@@ -342,6 +357,8 @@ def _write_run_config(cfg: TrainConfig, out: Path, run: _Run, start: int, resume
         "identity": made_with,
         "versions": _versions(),
     }
+    if run.dagger is not None:
+        resolved["dagger_result"] = run.dagger
     atomic_write_json(out / "config.json", to_jsonable(resolved))
 
 
@@ -357,7 +374,7 @@ def _train_loop(
     obs, _ = adapter.reset()
     if log is not _quiet:
         _announce(cfg, out, start, log, agent, adapter, obs)
-    clock = RunClock(ckpt_dir, start, inherited=cfg.init_from)
+    clock = RunClock(ckpt_dir, start, inherited=_spent_before(cfg.init_from, run.dagger))
     bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
     done = start
     recent = _EpisodeMeans()
@@ -429,7 +446,8 @@ class RunClock:
     ``checkpoints/times.json`` = {env steps: {"cpu_s", "wall_s"}} (CPU: this process's, all its
     threads; what a model card reports as the training's cost). A run started from another
     run's checkpoint (``inherited``: its ``init_from``) counts that run's seconds up to the
-    checkpoint too: the figures are the policy's cost from random weights."""
+    checkpoint too, and a DAgger warm start its own: the figures are the policy's cost from
+    random weights."""
 
     FILE = "times.json"
 
@@ -458,6 +476,12 @@ def read_times(ckpt_dir: str | Path) -> dict[int, dict[str, float]]:
         return {int(t): {k: float(v[k]) for k in ("cpu_s", "wall_s")} for t, v in raw.items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}
+
+
+def _spent_before(*sources: dict[str, Any] | None) -> dict[str, float]:
+    """CPU and wall seconds the policy cost before the run's first RL step: the ``init_from``
+    run's by its checkpoint and the DAgger warm start's (unknown ones count 0)."""
+    return {k: sum(float((s or {}).get(k) or 0.0) for s in sources) for k in ("cpu_s", "wall_s")}
 
 
 class _EpisodeMeans:

@@ -405,6 +405,8 @@ SPEC = TaskSpec(
     action_names=("dx", "dy", "dalpha"),
     expert=expert,
     expert_label="expert",
+    # down to the sacrum first, then the paper's expert: a DAgger expert, not the task's
+    experts={"level-counting": "sonogym.envs.level_expert:LevelCountingExpert"},
     metrics=(
         Metric("position_error_mm", "position error", "mm", tolerance=10.0),
         Metric("angle_error_deg", "rotation error", "deg"),

@@ -133,7 +133,9 @@ class TaskSpec:
     """Everything the rest of the package knows about a task (see the module docstring).
 
     ``expert(env, info)`` is the privileged expert (navigation, surgery) or heuristic
-    (reconstruction), named by ``expert_label``; ``dataset`` is None for a task without
+    (reconstruction), named by ``expert_label``; ``experts`` names further privileged
+    experts, each a factory ``make(env)`` of a ``Policy`` (per-env state allowed), that a DAgger
+    warm start may imitate (``sonogym.agents.dagger``); ``dataset`` is None for a task without
     expert datasets for imitation learning."""
 
     name: str
@@ -158,6 +160,8 @@ class TaskSpec:
     #: length): bumped whenever one of them changes, so results record which task they measure
     #: (``sonogym.envs.identity``)
     version: int = 1
+    #: further privileged experts by name: "module:ATTRIBUTE" of ``make(env)`` -> a ``Policy``
+    experts: dict[str, str] = field(default_factory=dict)
 
     @property
     def default_obs_mode(self) -> str | None:
@@ -169,6 +173,18 @@ class TaskSpec:
         if obs_mode is None:
             obs_mode = self.default_obs_mode
         return self.obs_versions.get(obs_mode, 1)
+
+    def expert_factory(self, name: str) -> Callable[[Any], Any]:
+        """The factory ``make(env)`` of the further expert ``name`` (``experts``); a name the
+        task lacks is refused, naming the ones it has."""
+        import importlib
+
+        if name not in self.experts:
+            raise ValueError(
+                f"{self.name} has no expert {name!r}; its further experts: {list(self.experts)}"
+            )
+        module, _, attr = self.experts[name].partition(":")
+        return getattr(importlib.import_module(module), attr)
 
     def metric(self, key: str) -> Metric:
         for m in self.metrics:

@@ -1,4 +1,4 @@
-"""The ``sonogym`` model against the reference's model (reference_implementation.md §1.7-§1.8),
+"""The ``reference`` model against the reference's model (reference_implementation.md §1.7-§1.8),
 recomputed here by hand with numpy on tiny inputs, term by term."""
 
 import dataclasses
@@ -196,7 +196,7 @@ def test_air_gap_blocks_the_beam():
     assert off[0, 0, 21:].abs().max() < 1e-6  # nothing below the gap (rows >= 10 mm)
 
 
-@pytest.mark.parametrize("model", ["sonogym", "physical"])
+@pytest.mark.parametrize("model", ["reference", "physical"])
 def test_coarser_probe_images_tissue_the_same_way(model):
     """Physical units: a 2 mm probe sees soft tissue and a bone line like the 0.5 mm one."""
     p = layered_patient([(0.025, SOFT), (0.01, BONE), (0.03, SOFT)], size_xz=(0.2, 0.2))

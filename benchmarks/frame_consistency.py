@@ -5,7 +5,7 @@ random navigation poses around L4 on the seed-0 phantom (1 mm), the 200 x 150 en
 and at the pose moved by --step (0.5 mm) along the probe's lateral axis x_U (in plane) and along its
 elevation axis y_U (out of plane); Pearson correlation of each pair, mean +- sd over poses, for the
 model-based ultrasound models and each shipped net (the envs' simulator: LUT fitted once by
-``sonogym.envs.imaging.matching_sample``).
+``sonogym.ultrasound.learned.matching.matching_sample``).
 
     python benchmarks/frame_consistency.py [--poses 64] [--step 0.5]
 """
@@ -18,8 +18,8 @@ import time
 import torch
 
 from sonogym.anatomy import PhantomParams, load_phantom
-from sonogym.envs.imaging import matching_sample
 from sonogym.ultrasound import ModelBasedSimulator, ProbeGeometry, Slicer
+from sonogym.ultrasound.learned.matching import matching_sample
 from sonogym.ultrasound.learned.shipped import NUM_SHIPPED, shipped_weights
 from sonogym.ultrasound.learned.simulator import LearnedSimulator
 
@@ -57,7 +57,10 @@ def main() -> None:
         "lateral x_U": slicer(pos + d * rot[:, :, 0], rot),
         "elevation y_U": slicer(pos + d * rot[:, :, 1], rot),
     }
-    sims = {"physical": ModelBasedSimulator("physical"), "sonogym": ModelBasedSimulator("sonogym")}
+    sims = {
+        "physical": ModelBasedSimulator("physical"),
+        "reference": ModelBasedSimulator("reference"),
+    }
     sample = matching_sample([patient], torch.device("cpu"))
     for k in range(NUM_SHIPPED):
         sim = LearnedSimulator(shipped_weights(k))

@@ -139,7 +139,7 @@ def main() -> None:
     ap.add_argument(
         "--envs", type=lambda s: [int(v) for v in s.split(",")], default=[1, 10, 100, 400]
     )
-    ap.add_argument("--models", type=_names, help="ultrasound models (default: sonogym,physical)")
+    ap.add_argument("--models", type=_names, help="ultrasound models (default: reference,physical)")
     ap.add_argument("--presets", type=_names, help=argparse.SUPPRESS)  # the former --models
     ap.add_argument("--seed", type=int, default=0, help="phantom seed")
     ap.add_argument("--spacing", type=float, default=1.0, help="phantom voxel size, mm")
@@ -154,7 +154,7 @@ def main() -> None:
         if args.models not in (None, args.presets):
             ap.error("--presets (deprecated) and --models differ: give --models only")
         args.models = args.presets
-    args.models = args.models or ["sonogym", "physical"]
+    args.models = args.models or ["reference", "physical"]
     torch.set_num_threads(args.threads)
     t0 = time.time()
     rows = run(args)

@@ -1,19 +1,18 @@
-"""The command line's shared run flags and renamed options: ``train`` and ``sweep`` take the
-same ``RunOptions`` flags with the same help, and the options renamed from ``--preset``
-(``image --us-model``, ``record --recipe``, ``il-train --size``) still accept the old
-spelling with a deprecation note."""
+"""The command line's shared run flags and renamed names: ``train`` and ``sweep`` take the
+same ``RunOptions`` flags with the same help; the options renamed from ``--preset``
+(``image --us-model``, ``record --recipe``, ``il-train --size``) refuse the old spelling; the
+reference model's former simulator name ``sonogym`` is taken with a one-line note."""
 
 from __future__ import annotations
 
 import dataclasses
 
 import pytest
-import typer
 from typer.main import get_command
 from typer.testing import CliRunner
 
 from sonogym.agents.options import RunOptions, flag
-from sonogym.cli import _deprecated, app
+from sonogym.cli import _simulator_name, app
 
 
 def _options(name: str) -> dict[str, tuple[str | None, object]]:
@@ -58,12 +57,15 @@ def test_sweep_resume_names_every_run_option_it_refuses(tmp_path):
     assert res.exit_code != 0 and "leave out --obs-mode, --threads" in flat, res.output
 
 
-def test_deprecated_spelling_is_taken_and_said():
-    assert _deprecated("record", "--preset", "--recipe", None, "mb") == "mb"
-    assert _deprecated("record", "--preset", "--recipe", "lb", None) == "lb"
-    assert _deprecated("record", "--preset", "--recipe", "lb", "lb") == "lb"
-    with pytest.raises(typer.BadParameter, match="--preset .deprecated. and --recipe differ"):
-        _deprecated("record", "--preset", "--recipe", "lb", "mb")
+def test_the_former_simulator_name_is_taken_and_said(capsys):
+    assert _simulator_name("train", None) is None
+    assert _simulator_name("train", "learned") == "learned"
+    assert _simulator_name("train", "sonogym") == "reference"
+    err = capsys.readouterr().err
+    assert err.strip() == (
+        "sonogym train: simulator 'sonogym' is now called 'reference'; "
+        "the old name is removed in 0.3.0"
+    )
 
 
 @pytest.mark.parametrize(
@@ -71,7 +73,9 @@ def test_deprecated_spelling_is_taken_and_said():
     [("image", "--preset", "--us-model"), ("record", "--preset", "--recipe"),
      ("il-train", "--preset", "--size")],
 )  # fmt: skip
-def test_renamed_options_keep_the_old_spelling_hidden(command, old, new):
+def test_renamed_options_refuse_the_old_spelling(command, old, new):
     params = {o: p for p in get_command(app).commands[command].params for o in p.opts}
     assert new in params and not params[new].hidden
-    assert old in params and params[old].hidden and new in params[old].help
+    assert old not in params
+    res = CliRunner().invoke(app, [command, old, "x"])
+    assert res.exit_code != 0 and old in res.output

@@ -57,6 +57,9 @@ def with_options(cls: type) -> Callable[[Callable], Callable]:
         @functools.wraps(command)
         def run(**kwargs: Any) -> Any:
             options = cls(**{f.name: kwargs.pop(f.name) for f in fields})
+            if getattr(options, "simulator", None) is not None:
+                name = _simulator_name(command.__name__.replace("_", "-"), options.simulator)
+                options = dataclasses.replace(options, simulator=name)
             return command(options=options, **kwargs)
 
         run.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
@@ -66,15 +69,17 @@ def with_options(cls: type) -> Callable[[Callable], Callable]:
     return decorate
 
 
-def _deprecated(command: str, old: str, new: str, old_value: Any, value: Any) -> Any:
-    """The value of option ``new`` where the user gave its former name ``old`` (said on
-    stderr); both given with different values is refused."""
-    if old_value is None:
-        return value
-    typer.echo(f"sonogym {command}: {old} is deprecated, use {new}", err=True)
-    if value is not None and value != old_value:
-        raise typer.BadParameter(f"{old} (deprecated) and {new} differ: give {new} only")
-    return old_value
+def _simulator_name(command: str, name: str | None) -> str | None:
+    """``name``, or the current name of a simulator's former name, said in one line on stderr
+    (the former names are removed in the version the note gives)."""
+    if name is None:
+        return None
+    from sonogym.ultrasound.registry import alias_note, canonical_name, is_alias
+
+    if not is_alias(name):
+        return name
+    typer.echo(f"sonogym {command}: {alias_note(name)}", err=True)
+    return canonical_name(name, warn=False)
 
 
 @app.command()
@@ -129,7 +134,10 @@ def image(
     ] = None,
     us_model: Annotated[
         str | None,
-        typer.Option(help="Model-based ultrasound model: physical (default), sonogym or both."),
+        typer.Option(
+            help="Ultrasound simulator: physical (default), reference, both (the two "
+            "model-based models) or another registered one."
+        ),
     ] = None,
     sheet: Annotated[
         bool, typer.Option(help="One sheet: CT slice | label slice | US per pose.")
@@ -139,12 +147,16 @@ def image(
         float, typer.Option(help="Voxel size in mm for the phantom / patient.")
     ] = 1.0,
     out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/image"),
-    preset: Annotated[str | None, typer.Option(hidden=True, help="Deprecated: --us-model.")] = None,
 ) -> None:
     """Render ultrasound images at surface poses of a phantom or a patient folder, to PNG."""
     from sonogym.viz.render import parse_pose, render_command
 
-    us_model = _deprecated("image", "--preset", "--us-model", preset, us_model) or "physical"
+    us_model = _simulator_name("image", us_model) or "physical"
+    if us_model != "both":
+        from sonogym.ultrasound.registry import get_simulator
+
+        with _bad_parameter():
+            get_simulator(us_model)  # an unknown name is refused before any work
     if seed is not None and patient is not None:
         raise typer.BadParameter("give --seed or --patient, not both")
     try:
@@ -159,10 +171,6 @@ def image(
         from sonogym.anatomy import PhantomParams, load_phantom
 
         subject = load_phantom(seed or 0, PhantomParams(spacing=spacing * 1e-3))
-    if us_model not in ("physical", "sonogym", "both"):
-        raise typer.BadParameter(
-            f"unknown ultrasound model {us_model!r}; use physical, sonogym or both"
-        )
     for path in render_command(subject, poses, us_model, sheet, probe, out):
         typer.echo(f"wrote {path}")
 
@@ -375,7 +383,11 @@ def record(
     ] = None,
     envs: Annotated[int | None, typer.Option(help="Parallel envs (default 16).")] = None,
     simulator: Annotated[
-        str | None, typer.Option(help="physical, sonogym or learned (overrides the recipe).")
+        str | None,
+        typer.Option(
+            help="physical, reference, learned or another registered simulator "
+            "(overrides the recipe)."
+        ),
     ] = None,
     learned_nets: Annotated[
         str | None, typer.Option(help="Comma-separated shipped net indices or generator.pt paths.")
@@ -387,14 +399,13 @@ def record(
     seed: Annotated[int | None, typer.Option(help="Seed of the first batch (default 0).")] = None,
     resume: Annotated[bool, typer.Option(help="Continue an interrupted recording.")] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing dataset in --out.")] = False,
-    preset: Annotated[str | None, typer.Option(hidden=True, help="Deprecated: --recipe.")] = None,
 ) -> None:
     """Record the task's expert into a LeRobotDataset v3.0 folder (PNG frames in parquet),
     for imitation learning (sonogym il-train) and for LeRobot itself."""
     from sonogym.imitation.record import record as run_record
 
-    recipe = _deprecated("record", "--preset", "--recipe", preset, recipe)
     _check_positive(("--episodes", episodes), ("--envs", envs))
+    simulator = _simulator_name("record", simulator)
     scene = RunOptions(simulator=simulator, learned_nets=learned_nets, patients=patients,
                        phantom_spacing=phantom_spacing)  # fmt: skip
     with _bad_parameter():
@@ -445,7 +456,6 @@ def il_train(
             "resumes from at most this far back; each replaces the previous such one."
         ),
     ] = 5.0,
-    preset: Annotated[str | None, typer.Option(hidden=True, help="Deprecated: --size.")] = None,
 ) -> None:
     """Train an imitation-learning policy (ACT, Diffusion Policy, ...) on an expert dataset;
     evaluate with sonogym eval --run."""
@@ -453,7 +463,6 @@ def il_train(
     from sonogym.imitation.run import read_run_config
     from sonogym.imitation.train import ILTrainConfig, il_train_settings, train_il
 
-    size = _deprecated("il-train", "--preset", "--size", preset, size)
     _check_positive(("--steps", steps), ("--batch-size", batch_size),
                     ("--checkpoint-every", checkpoint_every))  # fmt: skip
     if not checkpoint_minutes >= 0:

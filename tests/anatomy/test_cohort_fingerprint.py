@@ -22,9 +22,8 @@ import pytest
 
 from sonogym.anatomy import PhantomParams, make_phantom
 from sonogym.anatomy.phantom import GENERATOR_VERSION, _level_variation
-from sonogym.envs.identity import net_digests
 from sonogym.evaluation.cohort import HELD_OUT_PATIENTS, TRAIN_PATIENTS
-from sonogym.ultrasound.learned.shipped import NUM_SHIPPED
+from sonogym.ultrasound.learned.shipped import NUM_SHIPPED, net_digests
 
 FINGERPRINT = Path(__file__).resolve().parents[1] / "data" / "cohort_fingerprint.json"
 DOCS_CARD = Path(__file__).resolve().parents[2] / "docs" / "learned_model_card.json"

@@ -14,13 +14,16 @@ from sonogym.ultrasound.simulator import MODEL_VERSIONS
 
 
 def test_identity_records_generator_task_and_ultrasound():
-    ident = identity("navigation", {"simulator": "sonogym"})
+    ident = identity("navigation", {"simulator": "reference"})
     assert ident == {
         "generator_version": GENERATOR_VERSION,
         "task": "navigation",
         "task_version": get_task("navigation").version,
-        "ultrasound": {"model": "sonogym", "version": MODEL_VERSIONS["sonogym"]},
+        "ultrasound": {"model": "reference", "version": MODEL_VERSIONS["reference"]},
     }
+    # the reference model's former name records its current one
+    with pytest.warns(DeprecationWarning, match="'sonogym' is now called 'reference'"):
+        assert identity("navigation", {"simulator": "sonogym"}) == ident
     # the config's defaults fill what the keywords leave out
     assert identity("surgery")["ultrasound"]["model"] == "physical"
     assert identity("navigation", {"patients": ("somewhere@3",)})["variant_version"] == (

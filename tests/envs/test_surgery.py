@@ -310,7 +310,7 @@ def test_observation_matches_its_declared_space():
     assert lab_env.observation_space.contains({k: v.numpy() for k, v in lab.items()})
 
 
-@pytest.mark.parametrize("simulator", ["physical", "sonogym"])
+@pytest.mark.parametrize("simulator", ["physical", "reference"])
 def test_volume_shows_the_vertebra_at_every_reset(simulator):
     env = _env(8, simulator=simulator)
     bright = 0.5 if simulator == "physical" else 0.15

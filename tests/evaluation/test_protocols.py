@@ -37,7 +37,7 @@ def test_cohort_is_disjoint_and_extends_without_overlap():
 def test_idt_tests_on_the_runs_own_simulator_and_patients():
     p = protocol("idt")
     assert p.train_env_kwargs() == {"patients": TRAIN_PATIENTS}
-    assert p.test_env_overrides({"patients": [0, 1, 2, 3, 4], "simulator": "sonogym"}) == {}
+    assert p.test_env_overrides({"patients": [0, 1, 2, 3, 4], "simulator": "reference"}) == {}
     assert (p.trials, p.seed, p.column) == (100, 1000, "IDT")
 
 
@@ -83,9 +83,9 @@ def test_odt_patient_tests_on_held_out_patients_never_seen_in_training():
                 name, patients=(0, 5), simulator="learned" if name == "odt-sim" else None
             )
     # explicit options override the protocol's (and are still checked)
-    assert protocol_train_kwargs("idt", patients=(0, 1), simulator="sonogym") == {
+    assert protocol_train_kwargs("idt", patients=(0, 1), simulator="reference") == {
         "patients": (0, 1),
-        "simulator": "sonogym",
+        "simulator": "reference",
     }
     with pytest.raises(ValueError, match="unknown protocol"):
         protocol("odt-noise")

@@ -33,7 +33,7 @@ IMAGE = "observation.images.us"
 class MeanBrightnessConfig(ILConfig):
     """A linear map from the mean brightness of the last ``history`` images to a chunk."""
 
-    CPU_PRESET: ClassVar[dict[str, Any]] = dict(chunk=3)
+    CPU_SIZE: ClassVar[dict[str, Any]] = dict(chunk=3)
 
     history: int = 2  # observations read, >= 1
     chunk: int = 5  # actions per prediction

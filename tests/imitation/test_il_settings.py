@@ -32,16 +32,14 @@ def test_image_size_text():
             parse_image_size(bad)
 
 
-def test_a_config_with_the_former_cpu_preset_name_still_sizes_down():
+def test_a_config_with_the_former_cpu_preset_name_is_refused():
     import dataclasses
     from typing import Any, ClassVar
 
     from sonogym.imitation.policies.act import ACTConfig
 
-    with pytest.warns(DeprecationWarning, match="CPU_PRESET is deprecated: name it CPU_SIZE"):
+    with pytest.raises(TypeError, match="CPU_PRESET is not read: name it CPU_SIZE"):
 
         @dataclasses.dataclass(frozen=True)
         class OldStyle(ACTConfig):
             CPU_PRESET: ClassVar[dict[str, Any]] = dict(chunk_size=3, n_action_steps=3)
-
-    assert OldStyle.cpu().chunk_size == 3 and OldStyle.paper().chunk_size == ACTConfig().chunk_size

@@ -22,7 +22,7 @@ def two_threads():
     torch.set_num_threads(old)
 
 
-@pytest.mark.parametrize("model", ["physical", "sonogym"])
+@pytest.mark.parametrize("model", ["physical", "reference"])
 def test_two_threads_give_the_same_bits_as_one(model, two_threads):
     patient = block_patient(ct_noise=10.0)
     pos, rot = random_poses(7, seed=5)

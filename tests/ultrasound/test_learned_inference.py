@@ -127,5 +127,5 @@ def test_net_index_travels_with_the_slices_and_model_based_ignores_it(env_slices
     assert both.net_index.tolist() == [3, 4, 0]
     with pytest.raises(ValueError, match="net_index"):
         type(env_slices).cat([part, replace(part, net_index=None)])
-    mb = ModelBasedSimulator("sonogym")
+    mb = ModelBasedSimulator("reference")
     assert torch.equal(mb.simulate(part), mb.simulate(replace(part, net_index=None)))

@@ -40,7 +40,7 @@ def test_nominal_settings_reproduce_the_physical_display(slices):
 
 
 def test_nominal_settings_leave_another_simulators_display_alone(slices):
-    img = ModelBasedSimulator("sonogym").simulate(slices)
+    img = ModelBasedSimulator("reference").simulate(slices)
     assert (R.randomized_from_display(img, _settings(4), PROBE) - img).abs().max() < 1e-6
 
 

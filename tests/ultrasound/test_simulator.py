@@ -13,7 +13,7 @@ from sonogym.ultrasound import (
     make_model,
 )
 
-MODELS = ["physical", "sonogym"]
+MODELS = ["physical", "reference"]
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +102,7 @@ def test_out_buffer(slicer, model):
 
 
 def test_unknown_model_lists_the_known_ones():
-    with pytest.raises(ValueError, match=r"unknown ultrasound model 'fancy'.*physical.*sonogym"):
+    with pytest.raises(ValueError, match=r"unknown ultrasound model 'fancy'.*physical.*reference"):
         ModelBasedSimulator("fancy")
 
 
@@ -113,35 +113,37 @@ def test_bad_input_raises(slicer):
 
 
 def test_protocol_and_models():
-    sim = ModelBasedSimulator("sonogym")
+    sim = ModelBasedSimulator("reference")
     assert isinstance(sim, UltrasoundSimulator)
-    assert sim.model.name == "sonogym" and make_model("physical").name == "physical"
+    assert sim.model.name == "reference" and make_model("physical").name == "physical"
     model = PhysicalModel(frequency=5e6)
     assert ModelBasedSimulator(model).model is model
     assert model.axial_sigma < PhysicalModel().axial_sigma  # shorter wavelength, finer PSF
 
 
-def test_the_former_preset_spellings_still_work_and_warn(slicer):
+def test_the_former_model_name_warns_and_gives_the_reference_model(slicer):
+    """The reference model's former name, "sonogym", works until 0.3.0 removes it."""
+    from sonogym.ultrasound import ReferenceModel
+
+    with pytest.warns(DeprecationWarning, match="'sonogym' is now called 'reference'.*0.3.0"):
+        old = ModelBasedSimulator("sonogym")
+    assert isinstance(old.model, ReferenceModel) and old.model.name == "reference"
+    s = slicer(*random_poses(2, seed=3))
+    assert torch.equal(old.simulate(s), ModelBasedSimulator("reference").simulate(s))
+
+
+def test_the_former_preset_spellings_are_refused():
     """The models were called presets before "preset" meant the device preset only."""
     import sonogym.ultrasound as us
-    from sonogym.ultrasound import US_MODELS, SonoGymModel
 
-    with pytest.warns(DeprecationWarning, match=r"ModelBasedSimulator\(preset=...\) is deprec"):
-        old = ModelBasedSimulator(preset="sonogym")
-    assert isinstance(old.model, SonoGymModel)
-    s = slicer(*random_poses(2, seed=3))
-    assert torch.equal(old.simulate(s), ModelBasedSimulator(model="sonogym").simulate(s))
-    with pytest.warns(DeprecationWarning, match=r"\.preset is deprecated: use \.model\.name"):
-        assert old.preset == "sonogym"
-    with pytest.warns(DeprecationWarning, match=r"make_model\(preset=...\) is deprecated"):
-        assert make_model(preset="physical").name == "physical"
+    with pytest.raises(TypeError, match="preset"):
+        ModelBasedSimulator(preset="physical")
+    with pytest.raises(TypeError, match="preset"):
+        make_model(preset="physical")
+    assert not hasattr(ModelBasedSimulator("physical"), "preset")
     for module in (us, us.simulator):
-        with pytest.warns(DeprecationWarning, match="PRESETS is deprecated: use US_MODELS"):
-            assert module.PRESETS is US_MODELS
-    with pytest.raises(AttributeError, match="no attribute 'PRESET'"):
-        us.PRESET  # noqa: B018
-    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="give model only"):
-        ModelBasedSimulator("sonogym", preset="physical")
+        with pytest.raises(AttributeError, match="PRESETS"):
+            module.PRESETS  # noqa: B018
 
 
 def test_memory_is_small(slicer):

@@ -52,7 +52,7 @@ def test_upsampled_sampling_is_close_to_exact(patient):
     # ... and indistinguishable once imaged; the sonogym model's reflections come from
     # per-pixel CT jumps, so its bone lines vary with how an edge's ramp is sampled (as the
     # reference's did with its nearest lookup): same structure, brightness within ~30 %.
-    for model, min_corr in (("physical", 0.97), ("sonogym", 0.9)):
+    for model, min_corr in (("physical", 0.97), ("reference", 0.9)):
         sim = ModelBasedSimulator(model)
         ia, ib = sim.simulate(a), sim.simulate(b)
         assert (ia - ib).abs().mean() < 0.01

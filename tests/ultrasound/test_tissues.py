@@ -8,25 +8,25 @@ from sonogym.ultrasound import (
     GEL,
     PHYSICAL_LABEL_TISSUE,
     PHYSICAL_TISSUES,
-    SONOGYM_LABEL_TISSUE,
-    SONOGYM_TISSUES,
+    REFERENCE_LABEL_TISSUE,
+    REFERENCE_TISSUES,
     Tissue,
     TissueTable,
     physical_table,
-    sonogym_table,
+    reference_table,
 )
 
 ALL_IDS = [0, *LABELS]
 
 
-@pytest.mark.parametrize("mapping", [SONOGYM_LABEL_TISSUE, PHYSICAL_LABEL_TISSUE])
+@pytest.mark.parametrize("mapping", [REFERENCE_LABEL_TISSUE, PHYSICAL_LABEL_TISSUE])
 def test_every_label_id_is_mapped_explicitly(mapping):
     assert set(ALL_IDS) <= set(mapping)
     assert GEL in mapping
 
 
 def test_sonogym_uses_the_intended_mapping_without_the_chain_bug():
-    m = SONOGYM_LABEL_TISSUE
+    m = REFERENCE_LABEL_TISSUE
     assert m[5] == 11  # liver (the reference's chain sent it to "lung")
     assert m[2] == m[3] == 6  # kidneys
     assert m[1] == 12 and m[7] == 12  # spleen, pancreas
@@ -39,7 +39,7 @@ def test_sonogym_uses_the_intended_mapping_without_the_chain_bug():
 
 
 def test_sonogym_constants_are_the_references():
-    t = SONOGYM_TISSUES
+    t = REFERENCE_TISSUES
     assert t[12] == Tissue(1.09, 1.63, 0.43, 0.41, 0.0)
     assert t[13] == Tissue(7.8, 90.0, 0.78, 0.56, 0.1)
     assert t[8] == Tissue(1.09, 0.4, 0.7, 0.65, 0.0)
@@ -73,7 +73,7 @@ def test_ligaments_and_fascia_image_as_echogenic_dense_tissue():
 
 
 def test_table_columns_are_label_indexed():
-    tab = sonogym_table()
+    tab = reference_table()
     col = tab.column("alpha")
     assert col.shape == (256,) and col.dtype == torch.float64
     assert col[28] == 7.8 and col[120] == 1.09 and col[GEL] == 0.2

@@ -44,7 +44,9 @@ class RunOptions:
         "'us_memory' (navigation: us_heading + the image 30 steps back and the motion since), "
         "'us_scan' (navigation: us_memory + the image where the probe was most caudal)."
     )
-    simulator: str | None = _flag("Ultrasound simulator: physical, sonogym or learned.")
+    simulator: str | None = _flag(
+        "Ultrasound simulator: physical, reference, learned or another registered one."
+    )
     learned_nets: str | None = _flag(
         "With --simulator learned: comma-separated shipped net indices (0-4) and/or "
         "generator.pt paths, e.g. 0,1,2,3 (default: all five)."

@@ -22,9 +22,7 @@ Table 1).
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -37,47 +35,18 @@ class IdentityMismatch(ValueError):
     which result differs from the first, and in what."""
 
 
-def file_digest(path: str | Path) -> str:
-    """First 16 hex digits of a file's SHA-256: how identities name a net's weights."""
-    return _file_digest(str(Path(path).resolve()))
-
-
-@cache
-def _file_digest(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
-
-
-def net_digests(nets) -> dict[str, str]:
-    """``{name: digest}`` of the learned nets a ``learned_nets`` spec names: shipped nets as
-    ``net<i>``, a user's file by its path."""
-    from sonogym.ultrasound.learned.shipped import resolve_nets
-
-    items = [nets] if isinstance(nets, int | str | Path) else list(nets)
-    out = {}
-    for item, path in zip(items, resolve_nets(items), strict=True):
-        name = f"net{item}" if isinstance(item, int) else str(path)
-        out[name] = file_digest(path)
-    return out
-
-
 def ultrasound_identity(simulator: str, learned_nets=(), learned_precision: str = "auto"):
-    """What images a result: ``{"model": name, "version": n}`` for a model-based model;
-    ``{"model": "learned", "nets": {name: digest}, "precision": ...}`` for the learned one,
-    the precision as resolved on this machine ("auto": ``resolve_precision``)."""
-    from sonogym.ultrasound.learned.inference import resolve_precision
-    from sonogym.ultrasound.simulator import MODEL_VERSIONS
+    """What images a result, as the simulator's registry entry records it
+    (``sonogym.ultrasound.registry``): ``{"model": name, "version": n}`` for a model-based
+    model (its current name, also when a former one was given); ``{"model": "learned", "nets":
+    {name: digest}, "precision": ...}`` for the learned one, the precision as resolved on this
+    machine ("auto": ``resolve_precision``)."""
+    from sonogym.ultrasound.registry import SimulatorOptions
+    from sonogym.ultrasound.registry import identity as simulator_identity
 
-    if simulator == "learned":
-        return {
-            "model": "learned",
-            "nets": net_digests(learned_nets),
-            "precision": resolve_precision(learned_precision),
-        }
-    return {"model": simulator, "version": MODEL_VERSIONS[simulator]}
+    nets = learned_nets if learned_nets is not None else ()
+    options = SimulatorOptions(learned_nets=nets, learned_precision=learned_precision)
+    return simulator_identity(simulator, options)
 
 
 def identity(task: str, env_kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -133,7 +102,7 @@ def _ultrasound_differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[
     ]
     na, nb = ua.get("nets") or {}, ub.get("nets") or {}
     same_name = [k for k in nb if k in na and na[k] != nb[k]]
-    out += [f"learned net {k} with digest {nb[k]}, not {na[k]}" for k in same_name]
+    out += [f"{model} net {k} with digest {nb[k]}, not {na[k]}" for k in same_name]
     return out
 
 
@@ -169,11 +138,12 @@ def check_one_identity(results: Mapping[str, Mapping[str, Any] | None]) -> dict[
     models = []
     for model, (_, ref) in by_model.items():
         us = dict(ref.get("ultrasound") or {})
-        if model == "learned":  # every net any result used
+        if "nets" in us:  # every net any result imaged with this model used
             nets = {}
             for ident in results.values():
-                if (ident.get("ultrasound") or {}).get("model") == "learned":
-                    nets.update(ident["ultrasound"].get("nets") or {})
+                u = ident.get("ultrasound") or {}
+                if u.get("model") == model:
+                    nets.update(u.get("nets") or {})
             us["nets"] = dict(sorted(nets.items()))
         models.append(us)
     return {**{k: v for k, v in first.items() if k != "ultrasound"}, "ultrasound": models}
@@ -191,9 +161,9 @@ def stamp(ident: Mapping[str, Any]) -> str:
     for u in us:
         if not u:
             continue
-        if u.get("model") == "learned":
-            nets = ", ".join(f"{k} {v[:8]}" for k, v in u.get("nets", {}).items())
-            parts.append(f"learned ultrasound ({nets}; {u.get('precision')})")
+        if "nets" in u:
+            nets = ", ".join(f"{k} {v[:8]}" for k, v in u["nets"].items())
+            parts.append(f"{u.get('model')} ultrasound ({nets}; {u.get('precision')})")
         else:
             parts.append(f"{u.get('model')} ultrasound v{u.get('version')}")
     return "benchmark identity: " + " · ".join(parts)

@@ -257,7 +257,7 @@ class NavigationEnv(TaskEnv):
         self.command[env_ids] = cmd
         self.scene.reset(env_ids, cmd)
         self._state[env_ids] = self._measure(env_ids)
-        if self.cfg.simulator == "learned":  # last, so the other draws match model-based runs
+        if self.scene.draws_nets:  # last, so the other draws match model-based runs
             self.scene.draw_nets(env_ids, self.rand(len(env_ids)))
         if self.scene.imaging_randomization is not None:  # after: draws above stay the same
             self.scene.draw_imaging(env_ids, self.rand(len(env_ids), 8))

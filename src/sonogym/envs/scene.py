@@ -18,12 +18,13 @@ import numpy as np
 import torch
 
 from sonogym.anatomy import Patient, SkinSurface
-from sonogym.envs.imaging import NetChoice, build_simulator, check_simulator
+from sonogym.envs.imaging import NetChoice
 from sonogym.envs.patients import resolve_patients
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.memory import return_freed_memory
-from sonogym.ultrasound import ProbeGeometry, Slicer, make_model
+from sonogym.ultrasound import ProbeGeometry, Slicer
 from sonogym.ultrasound import randomization as imaging_rand
+from sonogym.ultrasound.registry import SimulatorOptions, check_options
 from sonogym.ultrasound.slicer import PatientCrop
 
 #: CT window of the "ct" observation mode, HU -> [0, 1].
@@ -97,10 +98,11 @@ class PatientScene:
 
     Args:
         cfg: the task's ``SceneConfig`` (``patients``, ``phantom_spacing``, ``simulator``,
-            ``learned_nets``, ``learned_precision``, ``target_vertebra``): ``simulator`` is
-            "physical" or "sonogym" (model-based) or "learned"; with "learned" each env uses
-            ``nets.index`` into ``learned_nets``, redrawn by ``draw_nets`` at its resets;
-            ``target_vertebra``'s body centroid anchors goals and arm placement.
+            ``learned_nets``, ``learned_precision``, ``target_vertebra``): ``simulator`` names
+            a registered simulator (``sonogym.ultrasound.registry``); with one that
+            ``draws_net`` (the learned one) each env uses ``nets.index`` into
+            ``learned_nets``, redrawn by ``draw_nets`` at its resets; ``target_vertebra``'s
+            body centroid anchors goals and arm placement.
         num_envs: N.
         device: torch device of everything.
         probe: the imaging geometry.
@@ -129,18 +131,23 @@ class PatientScene:
         patients, spacing, simulator = cfg.patients, cfg.phantom_spacing, cfg.simulator
         learned_nets, learned_precision = cfg.learned_nets, cfg.learned_precision
         target_vertebra = cfg.target_vertebra
-        check_simulator(simulator, learned_nets, learned_precision)
+        self.simulator_options = SimulatorOptions(tuple(learned_nets), learned_precision, gel_depth)
+        #: the simulator's registry entry (what it needs, how it is built)
+        self.simulator_spec = check_options(simulator, self.simulator_options)
+        #: whether each env's learned net is drawn at its resets (``draw_nets``): the task
+        #: draws it after its own draws, so a seed gives the same episode with any simulator
+        self.draws_nets = self.simulator_spec.draws_net
         self.reach = reach
         self.learned_precision = learned_precision
         self.device = device
         self.num_envs = num_envs
-        self.simulator_name = simulator
+        self.simulator_name = self.simulator_spec.name
         self.learned_nets = tuple(learned_nets)
         self.nets = NetChoice(num_envs, len(self.learned_nets), device)
         self.probe_geometry = probe
         self.gel_depth = gel_depth
         self._crops: list[PatientCrop] | None = None
-        if keep_volumes or simulator == "learned":
+        if keep_volumes or self.simulator_spec.needs_volumes:
             self.patients = resolve_patients(patients, spacing)
         else:
             self.patients, self._crops = self._load_cropped(patients, spacing, target_vertebra)
@@ -190,13 +197,9 @@ class PatientScene:
 
     @cached_property
     def simulator(self):
-        model = None
-        if self.simulator_name != "learned" and self.gel_depth is not None:
-            model = replace(make_model(self.simulator_name), gel_depth=float(self.gel_depth))
-        return build_simulator(
-            self.simulator_name, self.patients, self.device, self.learned_nets, model,
-            self.learned_precision,
-        )  # fmt: skip
+        """The ``UltrasoundSimulator`` of ``simulator_spec``, built for the patients."""
+        spec = self.simulator_spec
+        return spec.build(list(self.patients), torch.device(self.device), self.simulator_options)
 
     def build_imaging(self) -> None:
         """Build the slicer and the simulator now (else on the first ``observe``)."""
@@ -218,11 +221,8 @@ class PatientScene:
         self.imaging_randomization = imaging_rand.imaging_ranges(value)
         self.imaging_settings = None
         if self.imaging_randomization is not None:
-            dr = imaging_rand.NOMINAL_DYNAMIC_RANGE
-            if self.simulator_name == "physical":
-                dr = make_model("physical").dynamic_range
             self.imaging_settings = imaging_rand.nominal(
-                self.num_envs, self.probe_geometry, dr, self.device
+                self.num_envs, self.probe_geometry, self.simulator_spec.dynamic_range, self.device
             )
 
     def draw_imaging(self, env_ids: torch.Tensor, u: torch.Tensor) -> None:
@@ -266,10 +266,4 @@ class PatientScene:
             return self.simulator.simulate(slices).float()
         settings = self.imaging_settings
         settings = settings if env_ids is None else settings[env_ids]
-        probe = self.probe_geometry
-        if self.simulator_name == "physical":  # exact: on the envelope, before log compression
-            raw = self.simulator.simulate_raw(slices)
-            return imaging_rand.randomized_display(raw, settings, probe, self.simulator.model.gain)
-        return imaging_rand.randomized_from_display(
-            self.simulator.simulate(slices).float(), settings, probe
-        )
+        return self.simulator_spec.randomized(self.simulator, slices, settings, self.probe_geometry)

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from sonogym.envs.base import check_number_fields
-from sonogym.envs.imaging import SimulatorName, learned_nets_tuple
+from sonogym.envs.imaging import learned_nets_tuple
 from sonogym.ultrasound.learned.inference import resolve_precision
 from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
+from sonogym.ultrasound.registry import DEFAULT_SIMULATOR, get_simulator
 
 
 @dataclass(frozen=True)
@@ -30,7 +31,9 @@ class SceneConfig:
 
     patients: tuple = (0,)  # phantom seeds (int) and/or TotalSegmentator folders (str)
     phantom_spacing: float = 0.001  # m, voxel size of phantoms and resampled folders
-    simulator: SimulatorName = "physical"
+    # a registered simulator (``sonogym.ultrasound.registry``): "physical", "reference",
+    # "learned" or one of your own; a former name is replaced by its current one (warned)
+    simulator: str = DEFAULT_SIMULATOR
     learned_nets: tuple = (0, 1, 2, 3, 4)  # simulator="learned": shipped nets (int), files (str)
     # simulator="learned": the nets' working precision, "float32" (the reference), "bfloat16"
     # (~2x faster on a CPU with native bfloat16) or "auto": bfloat16 where the CPU has it
@@ -56,6 +59,8 @@ class SceneConfig:
             object.__setattr__(self, "patients", (self.patients,))
         object.__setattr__(self, "patients", tuple(self.patients))
         object.__setattr__(self, "learned_nets", learned_nets_tuple(self.learned_nets))
+        # an unknown name is refused naming the registered ones; a former name is renamed
+        object.__setattr__(self, "simulator", get_simulator(self.simulator).name)
         # the precision a run uses, as it records it (an "auto" resolved on this machine)
         object.__setattr__(
             self,

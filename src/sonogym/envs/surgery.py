@@ -465,7 +465,7 @@ class SurgeryEnv(TaskEnv):
         self._cost[env_ids] = 0.0
         self._safe_steps[env_ids] = 0.0
         self._tracking_error[env_ids] = 0.0
-        if cfg.simulator == "learned":  # last, so the other draws match model-based runs
+        if sc.draws_nets:  # last, so the other draws match model-based runs
             sc.draw_nets(env_ids, self.rand(k))
         if sc.imaging_randomization is not None:  # after: draws above stay the same
             sc.draw_imaging(env_ids, self.rand(k, 8))

@@ -71,7 +71,7 @@ class Protocol:
                 f"held-out patient(s) {list(leaked)}; held-out patients are test-only"
             )
         if self.name == "odt-sim":
-            if env_kwargs.get("simulator") != "learned":
+            if not _draws_nets(env_kwargs.get("simulator")):
                 raise ProtocolError(
                     f"odt-sim trains on the learned simulator, not {env_kwargs.get('simulator')!r}"
                 )
@@ -96,9 +96,9 @@ class Protocol:
                     f"{list(TRAIN_PATIENTS)} (sonogym train --protocol odt-patient)"
                 )
         if self.name == "odt-sim":
-            sim = run_env_kwargs.get("simulator", "physical")  # the envs' default
+            sim = run_env_kwargs.get("simulator") or _simulator(None).name
             nets = run_env_kwargs.get("learned_nets")
-            if sim != "learned":
+            if not _draws_nets(sim):
                 raise ProtocolError(
                     f"odt-sim tests a run trained on the learned simulator; this run used "
                     f"simulator {sim!r} (train with --protocol odt-sim)"
@@ -151,8 +151,22 @@ PROTOCOLS = ("idt", "odt-sim", "odt-patient")
 
 
 def simulator_group(simulator: str | None) -> str:
-    """The paper's simulator group: "LB" (learned) or "MB" (model-based)."""
-    return "LB" if simulator == "learned" else "MB"
+    """The paper's simulator group of ``simulator`` (None: the envs' default), as the
+    simulator registry declares it: "LB" (learning-based) or "MB" (model-based)."""
+    return _simulator(simulator).group
+
+
+def _draws_nets(simulator: str | None) -> bool:
+    """Whether ``simulator`` (None: the envs' default) images with learned nets drawn from
+    ``learned_nets``, which odt-sim splits into training and test nets."""
+    return _simulator(simulator).draws_net
+
+
+def _simulator(name: str | None):
+    """The registry entry of simulator ``name`` (None: the envs' default)."""
+    from sonogym.ultrasound.registry import DEFAULT_SIMULATOR, get_simulator
+
+    return get_simulator(name or DEFAULT_SIMULATOR)
 
 
 def protocol_train_kwargs(name: str, **explicit: Any) -> dict[str, Any]:

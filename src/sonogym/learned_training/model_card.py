@@ -191,7 +191,7 @@ def model_card(work: str | Path) -> dict:
     from torchmetrics.functional.image import structural_similarity_index_measure as ssim
 
     pair = [[float(ssim(a, b, data_range=1.0)) for b in outs] for a in outs]
-    from sonogym.envs.identity import net_digests
+    from sonogym.ultrasound.learned.shipped import net_digests
 
     # the shipped files' (``recipe.ship`` rewrites each generator's metadata): what runs record
     digests = net_digests(tuple(range(recipe.NUM_NETS)))

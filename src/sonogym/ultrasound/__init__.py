@@ -3,18 +3,26 @@
 Typical use::
 
     slicer = Slicer(patients, ProbeGeometry.linear_2d())
-    sim = ModelBasedSimulator("physical")          # or "sonogym"
+    sim = ModelBasedSimulator("physical")          # or "reference"
     images = sim.simulate(slicer(pos, rot))        # (N, E, H, W) in [0, 1]
+
+Envs pick a simulator by name from the registry (``sonogym.ultrasound.registry``):
+``get_simulator("learned")``; ``registry.register`` adds one of your own.
 """
 
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.protocol import UltrasoundSimulator
+from sonogym.ultrasound.registry import (
+    SimulatorOptions,
+    SimulatorSpec,
+    get_simulator,
+    simulator_names,
+)
 from sonogym.ultrasound.simulator import (
     US_MODELS,
     ModelBasedSimulator,
     PhysicalModel,
-    SonoGymModel,
-    deprecated_module_attribute,
+    ReferenceModel,
     make_model,
 )
 from sonogym.ultrasound.slicer import Slicer, Slices
@@ -22,35 +30,35 @@ from sonogym.ultrasound.tissues import (
     GEL,
     PHYSICAL_LABEL_TISSUE,
     PHYSICAL_TISSUES,
-    SONOGYM_LABEL_TISSUE,
-    SONOGYM_TISSUES,
+    REFERENCE_LABEL_TISSUE,
+    REFERENCE_TISSUES,
     Tissue,
     TissueTable,
     physical_table,
-    sonogym_table,
+    reference_table,
 )
 
 __all__ = [
     "GEL",
     "PHYSICAL_LABEL_TISSUE",
     "PHYSICAL_TISSUES",
-    "SONOGYM_LABEL_TISSUE",
-    "SONOGYM_TISSUES",
+    "REFERENCE_LABEL_TISSUE",
+    "REFERENCE_TISSUES",
     "ModelBasedSimulator",
     "PhysicalModel",
     "ProbeGeometry",
+    "SimulatorOptions",
+    "SimulatorSpec",
     "Slicer",
     "Slices",
-    "SonoGymModel",
+    "ReferenceModel",
     "Tissue",
     "TissueTable",
     "US_MODELS",
     "UltrasoundSimulator",
+    "get_simulator",
     "make_model",
     "physical_table",
-    "sonogym_table",
+    "simulator_names",
+    "reference_table",
 ]
-
-
-def __getattr__(name: str) -> dict[str, type]:
-    return deprecated_module_attribute(__name__, name)

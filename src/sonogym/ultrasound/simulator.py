@@ -7,7 +7,7 @@ gives the same image, and the result does not depend on the batch it was compute
 
 Two ultrasound models (DESIGN.md §5, §6):
 
-``sonogym`` -- the reference implementation's CT-mode model, exactly
+``reference`` -- the reference implementation's CT-mode model, exactly
 (reference_implementation.md §1.7-§1.8), with its constants restated in physical units so that
 at 0.5 mm pixels they equal the reference's per-pixel constants:
 
@@ -63,7 +63,6 @@ cache, and with more than one torch thread the chunks run on that many threads a
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -71,6 +70,7 @@ import torch
 
 from sonogym.ultrasound import psf as _psf
 from sonogym.ultrasound._workspace import ChunkRunner, Workspace, exp2_
+from sonogym.ultrasound.aliases import canonical_name
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.slicer import Slices
 from sonogym.ultrasound.speckle import gaussian_quantiles, lattice_bits, seed_mix
@@ -79,7 +79,7 @@ from sonogym.ultrasound.tissues import (
     TissueTable,
     impedance_of_hu,
     physical_table,
-    sonogym_table,
+    reference_table,
 )
 
 #: Bits of the per-pixel scatterer lookup: 8 for the density threshold, 4 for the amplitude.
@@ -109,8 +109,8 @@ _LOG2_E = 1.0 / math.log(2.0)
 
 
 @dataclass(frozen=True, eq=False)
-class SonoGymModel:
-    """The ``sonogym`` model: the reference's CT-mode model (values from
+class ReferenceModel:
+    """The ``reference`` model: the reference's CT-mode model (values from
     reference_implementation.md §1.1, §1.7, §1.8, in physical units)."""
 
     e_s_ratio: float = 20.0  # weight of the reflection term
@@ -133,9 +133,9 @@ class SonoGymModel:
     gel_hu_threshold: float = -200.0  # HU; in the gel band, CT below it (air) reads as water
     air_blocks: bool = True  # air (label 0) below the gel band stops the beam
     observation_scale: float = 0.02  # raw -> observation, clipped to [0, 1]
-    tissues: TissueTable = field(default_factory=sonogym_table)
+    tissues: TissueTable = field(default_factory=reference_table)
 
-    name = "sonogym"
+    name = "reference"
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,50 +185,21 @@ class PhysicalModel:
 
 
 #: The model-based ultrasound models by name.
-US_MODELS: dict[str, type] = {"physical": PhysicalModel, "sonogym": SonoGymModel}
+US_MODELS: dict[str, type] = {"physical": PhysicalModel, "reference": ReferenceModel}
 #: Each model's version: bumped whenever its images for the same slices change, so that results
 #: record which images they were measured on (``sonogym.envs.identity``).
-MODEL_VERSIONS: dict[str, int] = {"physical": 1, "sonogym": 1}
+MODEL_VERSIONS: dict[str, int] = {"physical": 1, "reference": 1}
 
 
-def _renamed_preset(owner: str, model, preset, default=None):
-    """``model``, or ``preset`` where a caller still uses the keyword's former name (warned)."""
-    if preset is None:
+def make_model(model: str | ReferenceModel | PhysicalModel) -> ReferenceModel | PhysicalModel:
+    """An ultrasound model from its name (or pass a configured model through). ``"sonogym"``,
+    the former name of ``"reference"``, is accepted with a ``DeprecationWarning`` until 0.3.0."""
+    if isinstance(model, (ReferenceModel, PhysicalModel)):
         return model
-    warnings.warn(
-        f"{owner}(preset=...) is deprecated: use model=...", DeprecationWarning, stacklevel=3
-    )
-    if model != default and model != preset:
-        raise TypeError(f"{owner}: model={model!r} and preset={preset!r} differ: give model only")
-    return preset
-
-
-def make_model(
-    model: str | SonoGymModel | PhysicalModel | None = None,
-    *,
-    preset: str | SonoGymModel | PhysicalModel | None = None,
-) -> SonoGymModel | PhysicalModel:
-    """An ultrasound model from its name (or pass a configured model through). ``preset``:
-    deprecated name of ``model``."""
-    model = _renamed_preset("make_model", model, preset)
-    if isinstance(model, (SonoGymModel, PhysicalModel)):
-        return model
-    if model not in US_MODELS:
+    name = canonical_name(model) if isinstance(model, str) else model
+    if name not in US_MODELS:
         raise ValueError(f"unknown ultrasound model {model!r}; known models: {sorted(US_MODELS)}")
-    return US_MODELS[model]()
-
-
-def deprecated_module_attribute(module: str, name: str, stacklevel: int = 3) -> dict[str, type]:
-    """``PRESETS``, the name of ``US_MODELS`` before "preset" meant the device preset only
-    (warned, pointing at the caller of the module's ``__getattr__``)."""
-    if name != "PRESETS":
-        raise AttributeError(f"module {module!r} has no attribute {name!r}")
-    warnings.warn(f"{module}.PRESETS is deprecated: use US_MODELS", DeprecationWarning, stacklevel)
-    return US_MODELS
-
-
-def __getattr__(name: str) -> dict[str, type]:
-    return deprecated_module_attribute(__name__, name)
+    return US_MODELS[name]()
 
 
 def _large_scale_block(h: int, w: int, dz: float, dx: float, limit: float = 2.5e-3) -> int:
@@ -258,22 +229,19 @@ class ModelBasedSimulator:
     """Model-based ultrasound simulator (``UltrasoundSimulator`` protocol).
 
     Args:
-        model: "physical", "sonogym", or a configured ``PhysicalModel``/``SonoGymModel``.
+        model: "physical", "reference", or a configured ``PhysicalModel``/``ReferenceModel``.
         device: where the lookup tables live; slices on another device are rejected.
         chunk_pixels: pixels processed per chunk (CPU cache blocking); default 2**19 on CPU,
             everything at once on CUDA.
-        preset: deprecated name of ``model``.
     """
 
     def __init__(
         self,
-        model: str | SonoGymModel | PhysicalModel = "physical",
+        model: str | ReferenceModel | PhysicalModel = "physical",
         device: torch.device | str = "cpu",
         chunk_pixels: int | None = None,
-        *,
-        preset: str | SonoGymModel | PhysicalModel | None = None,
     ) -> None:
-        self.model = make_model(_renamed_preset("ModelBasedSimulator", model, preset, "physical"))
+        self.model = make_model(model)
         self.device = torch.device(device)
         if chunk_pixels is None:
             chunk_pixels = 2**19 if self.device.type == "cpu" else 2**40
@@ -286,14 +254,6 @@ class ModelBasedSimulator:
         pairs = torch.stack(torch.meshgrid(q, q, indexing="ij"), 0).reshape(2, -1)
         self._gauss_pairs = pairs.contiguous().to(self.device)
         self._chunks = ChunkRunner(self.device)  # scratch buffers, one set per worker thread
-
-    @property
-    def preset(self) -> str:
-        """Deprecated: the model's name, ``model.name``."""
-        warnings.warn(
-            "ModelBasedSimulator.preset is deprecated: use .model.name", DeprecationWarning, 2
-        )
-        return self.model.name
 
     @property
     def nbytes(self) -> int:
@@ -331,7 +291,7 @@ class ModelBasedSimulator:
         y = torch.arange(h, dtype=torch.float64)
         k: dict = {"gel_rows": min(h, int(math.ceil(m.gel_depth / dz - 1e-9)))}
         k["ls_block"] = _large_scale_block(h, w, dz, dx)
-        if isinstance(m, SonoGymModel):
+        if isinstance(m, ReferenceModel):
             per_px = m.attenuation_per_mm * dz * 1e3
             att = (tab.column("alpha") - m.beta_backscatter) * per_px
             if m.air_blocks:
@@ -388,7 +348,7 @@ class ModelBasedSimulator:
         return self._run(slices, True, out)
 
     def simulate_raw(self, slices: Slices, out: torch.Tensor | None = None) -> torch.Tensor:
-        """Images before display mapping: ``sonogym``: 20 R + B (before x0.02 and clipping);
+        """Images before display mapping: ``reference``: 20 R + B (before x0.02 and clipping);
         ``physical``: the TGC-compensated envelope (before log compression)."""
         return self._run(slices, False, out)
 
@@ -422,7 +382,9 @@ class ModelBasedSimulator:
         flat = out.view(b_all, h, w)
         step = max(1, self.chunk_pixels // (h * w))
         chunk = (
-            self._sonogym_chunk if isinstance(self.model, SonoGymModel) else self._physical_chunk
+            self._reference_chunk
+            if isinstance(self.model, ReferenceModel)
+            else self._physical_chunk
         )
 
         def run(sl: slice, ws: Workspace) -> None:
@@ -475,9 +437,9 @@ class ModelBasedSimulator:
             amp.view(b, hb, kb, w).mul_(mod.repeat_interleave(kb, dim=2).view(b, hb, 1, w))
         return amp, bits
 
-    # ------------------------------------------------------------- sonogym
-    def _sonogym_chunk(self, chunk: _Chunk) -> None:
-        m: SonoGymModel = self.model  # type: ignore[assignment]
+    # ----------------------------------------------------------- reference
+    def _reference_chunk(self, chunk: _Chunk) -> None:
+        m: ReferenceModel = self.model  # type: ignore[assignment]
         ct, lab, geom, k, display, out, ws = chunk
         g = k["gel_rows"]
         # Attenuation, inclusive of the current pixel: A_B = exp(-sum (alpha - beta_B) dz).

@@ -5,7 +5,7 @@ v2 ids 1-117, project ids 118-124) maps to one tissue in each model; ``GEL`` (25
 label the simulator gives to air in the first millimetres under the probe face (coupling gel).
 Ids the tables do not list (125-254) image as generic soft tissue.
 
-``sonogym`` model (reference_implementation.md §1.2-§1.3): the reference's ImFusion-style tissue
+``reference`` model (reference_implementation.md §1.2-§1.3): the reference's ImFusion-style tissue
 ids with its parameters copied exactly, and the *intended* TotalSegmentator -> tissue mapping of
 its ``label_conversion.yaml`` (liver -> 11, kidneys -> 6, ...), not the chained in-place
 relabelling that sent liver and kidneys to "lung". Its attenuation ``alpha`` is in the
@@ -42,9 +42,9 @@ class Tissue:
     """Acoustic parameters of one tissue.
 
     Attributes:
-        alpha: attenuation; ``physical``: dB/cm/MHz (one way, amplitude); ``sonogym``: the
+        alpha: attenuation; ``physical``: dB/cm/MHz (one way, amplitude); ``reference``: the
             reference's units (decay exp(-0.02 * alpha * dz / mm)).
-        impedance: acoustic impedance, MRayl (unused by the ``sonogym`` model, whose impedance
+        impedance: acoustic impedance, MRayl (unused by the ``reference`` model, whose impedance
             comes from the CT; kept as the reference's data).
         mu0: mean scatterer amplitude.
         mu1: scatterer density threshold on a standard normal N1 (density = Phi(mu1)).
@@ -60,10 +60,10 @@ class Tissue:
     hu: float = 0.0
 
 
-# ------------------------------------------------------------------------------ sonogym
+# ---------------------------------------------------------------------------- reference
 #: The reference's tissue table (ImFusion-style ids), reference_implementation.md §1.2.
 #: All tissues also share the large-scale amplitude A_l = 0.08 and cell f_l = 30 px (15 mm).
-SONOGYM_TISSUES: dict[int, Tissue] = {
+REFERENCE_TISSUES: dict[int, Tissue] = {
     0: Tissue(0.2, 0.04, 0.0, 0.0, 0.0),  # background / outside the body
     2: Tissue(0.2, 0.4, 0.7, 0.65, 0.0),  # lung
     3: Tissue(0.48, 1.42, 0.5, 0.5, 0.0),  # fat (unused by the mapping)
@@ -89,7 +89,7 @@ def _ranges(*pairs: tuple[range | list[int] | int, object]) -> dict[int, object]
 
 
 #: Label id -> reference tissue id (the intended label_conversion.yaml + project ids).
-SONOGYM_LABEL_TISSUE: dict[int, int] = _ranges(
+REFERENCE_LABEL_TISSUE: dict[int, int] = _ranges(
     (0, 0),
     (1, 12),  # spleen
     ([2, 3], 6),  # kidneys
@@ -114,7 +114,7 @@ SONOGYM_LABEL_TISSUE: dict[int, int] = _ranges(
     ([123, 124], 12),  # spinal ligaments, thoracolumbar fascia (no ligament tissue there)
     (GEL, 4),  # coupling gel: water
 )
-SONOGYM_DEFAULT_TISSUE = 12
+REFERENCE_DEFAULT_TISSUE = 12
 
 # ----------------------------------------------------------------------------- physical
 #: Physical tissue classes. impedance MRayl, alpha dB/cm/MHz, hu Hounsfield units.
@@ -263,9 +263,11 @@ class TissueTable:
         )
 
 
-def sonogym_table() -> TissueTable:
-    """The ``sonogym`` model's table (the reference's tissues, intended mapping)."""
-    return TissueTable(SONOGYM_LABEL_TISSUE, SONOGYM_TISSUES, SONOGYM_DEFAULT_TISSUE, "sonogym")
+def reference_table() -> TissueTable:
+    """The ``reference`` model's table (the reference's tissues, intended mapping)."""
+    return TissueTable(
+        REFERENCE_LABEL_TISSUE, REFERENCE_TISSUES, REFERENCE_DEFAULT_TISSUE, "reference"
+    )
 
 
 def physical_table() -> TissueTable:

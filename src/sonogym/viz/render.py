@@ -19,15 +19,13 @@ import torch
 
 from sonogym.anatomy.patient import Patient
 from sonogym.ultrasound.probe import ProbeGeometry
-from sonogym.ultrasound.simulator import US_MODELS, ModelBasedSimulator
+from sonogym.ultrasound.registry import SimulatorOptions, get_simulator
+from sonogym.ultrasound.simulator import US_MODELS
 from sonogym.ultrasound.slicer import Slicer, Slices
 
 #: Surface pose: x (m), z (m), yaw (rad), tilt (rad).
 Pose = tuple[float, float, float, float]
 PROBES = {"linear": ProbeGeometry.linear_2d, "volume": ProbeGeometry.volume_3d}
-#: The ``sonogym`` model's raw output is shown divided by 20, the reference viewer's scale
-#: (its observation, raw x 0.02, is dark: about [0, 0.4]).
-SONOGYM_VIEW_SCALE = 1 / 20
 
 
 def parse_pose(text: str) -> Pose:
@@ -75,25 +73,21 @@ def render(
     us_models: Sequence[str] = ("physical",),
     probe: ProbeGeometry | None = None,
 ) -> Rendering:
-    """Slice and simulate ``poses`` (surface poses in SI) with each model-based ultrasound
-    model (``physical``, ``sonogym``).
+    """Slice and simulate ``poses`` (surface poses in SI) with each simulator of
+    ``us_models`` (registered names: ``physical``, ``reference``, ...), keyed by its name.
 
-    Display images: ``physical`` as simulated; ``sonogym`` as raw / 20 clipped to [0, 1]."""
+    Display images as each simulator's registry entry views them (``SimulatorSpec.view``):
+    ``physical`` as simulated; ``reference`` as raw / 20 clipped to [0, 1]."""
     if not poses:
         raise ValueError("render needs at least one pose")
-    for m in us_models:
-        if m not in US_MODELS:
-            raise ValueError(f"unknown ultrasound model {m!r}; known models: {sorted(US_MODELS)}")
+    specs = [get_simulator(m) for m in us_models]  # unknown names fail before any work
     t = torch.tensor(poses, dtype=torch.float64)
     pos, rot = patient.skin.surface_pose(t[:, 0], t[:, 1], t[:, 2], t[:, 3])
     slices = Slicer(patient, probe)(pos.double(), rot.double())
     images = {}
-    for name in us_models:
-        sim = ModelBasedSimulator(name)
-        if name == "sonogym":
-            images[name] = (sim.simulate_raw(slices) * SONOGYM_VIEW_SCALE).clamp_(0, 1)
-        else:
-            images[name] = sim.simulate(slices)
+    for spec in specs:
+        sim = spec.build([patient], torch.device("cpu"), SimulatorOptions())
+        images[spec.name] = spec.view(sim, slices)
     return Rendering(list(poses), slices, images)
 
 
@@ -192,9 +186,10 @@ def render_command(
 ) -> list[Path]:
     """What ``sonogym image`` does: render and write PNGs; returns the written paths.
 
-    us_model: "physical", "sonogym" or "both"; probe: "linear" or "volume" (the five elevation
+    us_model: a simulator name ("physical", "reference") or "both" (the two model-based
+    models); probe: "linear" or "volume" (the five elevation
     slices side by side); out: a folder (per-pose PNGs, or sheet.png with ``sheet``)."""
-    models = sorted(US_MODELS) if us_model == "both" else [us_model]
+    models = sorted(US_MODELS) if us_model == "both" else [get_simulator(us_model).name]
     if probe not in PROBES:
         raise ValueError(f"unknown probe {probe!r}; known probes: {sorted(PROBES)}")
     poses = list(poses) if poses else default_poses(patient)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -50,13 +49,8 @@ class ILConfig(abc.ABC):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if "CPU_PRESET" in cls.__dict__:  # the attribute's name before it became CPU_SIZE
-            warnings.warn(
-                f"{cls.__name__}.CPU_PRESET is deprecated: name it CPU_SIZE",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            cls.CPU_SIZE = cls.__dict__["CPU_PRESET"]
+        if "CPU_PRESET" in cls.__dict__:  # refused, not ignored: its cpu size would be lost
+            raise TypeError(f"{cls.__name__}.CPU_PRESET is not read: name it CPU_SIZE")
 
     @classmethod
     def paper(cls, **overrides: Any) -> ILConfig:

@@ -8,7 +8,9 @@ from ``sonogym lb-train``).
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
+from functools import cache
 from pathlib import Path
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
@@ -50,4 +52,29 @@ def resolve_nets(spec: int | str | Path | Sequence[int | str | Path]) -> list[Pa
             out.append(p)
         else:
             out.append(shipped_weights(it))
+    return out
+
+
+def file_digest(path: str | Path) -> str:
+    """First 16 hex digits of a file's SHA-256: how identities name a net's weights."""
+    return _file_digest(str(Path(path).resolve()))
+
+
+@cache
+def _file_digest(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def net_digests(nets) -> dict[str, str]:
+    """``{name: digest}`` of the learned nets a ``learned_nets`` spec names: shipped nets as
+    ``net<i>``, a user's file by its path."""
+    items = [nets] if isinstance(nets, int | str | Path) else list(nets)
+    out = {}
+    for item, path in zip(items, resolve_nets(items), strict=True):
+        name = f"net{item}" if isinstance(item, int) else str(path)
+        out[name] = file_digest(path)
     return out

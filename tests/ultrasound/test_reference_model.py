@@ -1,4 +1,4 @@
-"""The ``sonogym`` model against the reference's model (reference_implementation.md §1.7-§1.8),
+"""The ``reference`` model against the reference's model (reference_implementation.md §1.7-§1.8),
 recomputed here by hand with numpy on tiny inputs, term by term."""
 
 import dataclasses
@@ -11,23 +11,23 @@ from scipy import signal
 from us_synthetic import BONE, MUSCLE, SOFT, block_patient, layered_patient, straight_down
 
 from sonogym.ultrasound import (
-    SONOGYM_LABEL_TISSUE,
-    SONOGYM_TISSUES,
+    REFERENCE_LABEL_TISSUE,
+    REFERENCE_TISSUES,
     ModelBasedSimulator,
     ProbeGeometry,
+    ReferenceModel,
     Slicer,
     Slices,
-    SonoGymModel,
     TissueTable,
 )
 
 # Deterministic scatterers (density 1, no amplitude noise): S = mu0 exactly.
 DENSE = TissueTable(
-    SONOGYM_LABEL_TISSUE,
-    {k: dataclasses.replace(t, mu1=50.0, sigma0=0.0) for k, t in SONOGYM_TISSUES.items()},
+    REFERENCE_LABEL_TISSUE,
+    {k: dataclasses.replace(t, mu1=50.0, sigma0=0.0) for k, t in REFERENCE_TISSUES.items()},
     12,
 )
-PLAIN = SonoGymModel(tissues=DENSE, large_scale_amplitude=0.0, gel_depth=0.0)
+PLAIN = ReferenceModel(tissues=DENSE, large_scale_amplitude=0.0, gel_depth=0.0)
 
 
 def _slices(ct: np.ndarray, lab: np.ndarray, spacing: float = 0.5e-3) -> Slices:
@@ -53,9 +53,9 @@ def _psf(sa, sl):
 
 def reference(ct, lab):
     """§1.7-§1.8 literally, per 0.5 mm pixel, for deterministic scatterers."""
-    tissue = np.vectorize(lambda v: SONOGYM_LABEL_TISSUE[int(v)])(lab)
-    alpha = np.vectorize(lambda t: SONOGYM_TISSUES[t].alpha)(tissue)
-    mu0 = np.vectorize(lambda t: SONOGYM_TISSUES[t].mu0)(tissue)
+    tissue = np.vectorize(lambda v: REFERENCE_LABEL_TISSUE[int(v)])(lab)
+    alpha = np.vectorize(lambda t: REFERENCE_TISSUES[t].alpha)(tissue)
+    mu0 = np.vectorize(lambda t: REFERENCE_TISSUES[t].mu0)(tissue)
     c = (np.clip(ct, -300, 3000) + 300) / 3300 * 255  # §1.7
     z = 100 * c  # CT mode
     zu = np.concatenate([z[1:2], z[:-1]])  # reflect padding at the top
@@ -104,8 +104,8 @@ def test_each_term_by_hand():
     np.testing.assert_allclose(b[0, 0].numpy(), terms["b"], rtol=2e-4, atol=1e-6)
     # reflection only: all mu0 = 0
     dark = TissueTable(
-        SONOGYM_LABEL_TISSUE,
-        {k: dataclasses.replace(t, mu0=0.0, sigma0=0.0) for k, t in SONOGYM_TISSUES.items()},
+        REFERENCE_LABEL_TISSUE,
+        {k: dataclasses.replace(t, mu0=0.0, sigma0=0.0) for k, t in REFERENCE_TISSUES.items()},
         12,
     )
     r = ModelBasedSimulator(dataclasses.replace(PLAIN, tissues=dark)).simulate_raw(s)
@@ -139,7 +139,7 @@ def test_observation_is_scaled_and_clipped():
 def test_scatterer_statistics():
     """Random scatterers: a fraction Phi(mu1) of pixels scatters, with amplitude mu0 + s0 N."""
     h, w = 200, 150
-    model = SonoGymModel(large_scale_amplitude=0.0, gel_depth=0.0)
+    model = ReferenceModel(large_scale_amplitude=0.0, gel_depth=0.0)
     sim = ModelBasedSimulator(model)
     k = sim._constants(ProbeGeometry.linear_2d())
     for label, tissue in ((SOFT, 12), (BONE, 13)):
@@ -149,7 +149,7 @@ def test_scatterer_statistics():
         cols = torch.tensor([[0.5e-3, 0.0, 0.0]] * 4, dtype=torch.float64)
         mix = torch.tensor([1, 2, 3, 4])
         amp, _ = sim._scatterers(lab12, (o, rows, cols, mix, mix), k, sim._chunks.workspaces[0])
-        t = SONOGYM_TISSUES[tissue]
+        t = REFERENCE_TISSUES[tissue]
         density = 0.5 * (1 + math.erf(t.mu1 / math.sqrt(2)))
         on = amp[amp > 0]
         assert (amp > 0).float().mean() == pytest.approx(density, abs=0.01)
@@ -160,7 +160,7 @@ def test_scatterer_statistics():
 def test_large_scale_modulation_is_per_env_and_patient_fixed():
     p = layered_patient([(0.12, SOFT)], size_xz=(0.3, 0.3))
     sl = Slicer(p)
-    model = SonoGymModel(large_scale_amplitude=0.5)  # exaggerated to see it
+    model = ReferenceModel(large_scale_amplitude=0.5)  # exaggerated to see it
     sim = ModelBasedSimulator(model)
     pos, rot = straight_down(3, x=torch.tensor([-0.08, 0.08, -0.08]), z=0.0)
     raw = sim.simulate_raw(sl(pos, rot))[:, 0]
@@ -178,7 +178,7 @@ def test_magnitude_matches_the_reference_on_a_block_phantom():
     pos, rot = straight_down(
         8, x=torch.linspace(-0.005, 0.005, 8), z=torch.linspace(-0.02, 0.02, 8)
     )
-    raw = ModelBasedSimulator("sonogym").simulate_raw(sl(pos, rot))[:, 0]
+    raw = ModelBasedSimulator("reference").simulate_raw(sl(pos, rot))[:, 0]
     bone_rows = raw[:, 40:60, 60:90]  # bone surface at 25 mm = row 50
     peak = bone_rows.amax((1, 2))
     assert torch.all((peak > 15) & (peak < 21)), peak
@@ -189,14 +189,14 @@ def test_magnitude_matches_the_reference_on_a_block_phantom():
 def test_air_gap_blocks_the_beam():
     p = layered_patient([(0.05, SOFT), (0.02, BONE), (0.03, SOFT)], air_above=0.03)
     sl = Slicer(p)
-    sim = ModelBasedSimulator("sonogym")
+    sim = ModelBasedSimulator("reference")
     on = sim.simulate_raw(sl(*straight_down(1)))
     off = sim.simulate_raw(sl(*straight_down(1, y=-0.01)))  # 10 mm air gap
     assert on[0, 0, 30:].mean() > 1.0
     assert off[0, 0, 21:].abs().max() < 1e-6  # nothing below the gap (rows >= 10 mm)
 
 
-@pytest.mark.parametrize("model", ["sonogym", "physical"])
+@pytest.mark.parametrize("model", ["reference", "physical"])
 def test_coarser_probe_images_tissue_the_same_way(model):
     """Physical units: a 2 mm probe sees soft tissue and a bone line like the 0.5 mm one."""
     p = layered_patient([(0.025, SOFT), (0.01, BONE), (0.03, SOFT)], size_xz=(0.2, 0.2))

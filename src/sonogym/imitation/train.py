@@ -236,24 +236,52 @@ class _Dataset:
     frames: LeRobotFrames
 
 
-def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
-    from torch.utils.tensorboard import SummaryWriter
+@dataclasses.dataclass
+class _Learner:
+    """What one IL run trains and saves: the model, its optimiser and schedule, and the two
+    random streams (the model's noise and the loader's order)."""
 
-    data, info, stats = dataset.root, dataset.info, dataset.stats
-    features, recording, ds = dataset.features, dataset.recording, dataset.frames
-    out = Path(cfg.out)
-    old, state = _resume_state(cfg)
-    dev = torch.device(cfg.device)
+    model: torch.nn.Module
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LRScheduler
+    gen: torch.Generator
+    loader_gen: torch.Generator
 
-    spec = get_policy(cfg.policy)
+    def state(self, step: int) -> dict:
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "scheduler": self.sched.state_dict(),
+            "step": step,
+            "rng": {"model": self.gen.get_state(), "loader": self.loader_gen.get_state()},
+        }
+
+    def load(self, state: dict) -> int:
+        """Restore a checkpoint's state; returns its step."""
+        self.model.load_state_dict(state["model"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.sched.load_state_dict(state["scheduler"])
+        self.gen.set_state(state["rng"]["model"].cpu())
+        self.loader_gen.set_state(state["rng"]["loader"].cpu())
+        return int(state["step"])
+
+
+def _learner(cfg: ILTrainConfig, pcfg, spec, dataset: _Dataset, dev: torch.device) -> _Learner:
+    """The seeded model (its initial weights from ``cfg.seed``), optimiser, schedule and
+    random streams, in the order that fixes them."""
     torch.manual_seed(cfg.seed)
-    model = spec.model_cls(pcfg, features, stats).to(dev)
+    model = spec.model_cls(pcfg, dataset.features, dataset.stats).to(dev)
     model.train()
     opt = model.optimizer()
     sched = torch.optim.lr_scheduler.LambdaLR(opt, model.lr_lambda(cfg.steps))
     gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     loader_gen = torch.Generator().manual_seed(cfg.seed + 2)
+    return _Learner(model, opt, sched, gen, loader_gen)
 
+
+def _run_config(cfg: ILTrainConfig, pcfg, spec, dataset: _Dataset, model) -> dict:
+    """The run's ``config.json``, in the form the file holds (tuples as lists)."""
+    info, recording = dataset.info, dataset.recording
     run_cfg = {
         # what evaluation needs without the dataset: the task and the env it imaged
         "task": recording.get("task"),
@@ -266,41 +294,40 @@ def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
         "policy_config": pcfg.to_dict(),
         "train": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "policy_config"},
         "dataset": {
-            "root": str(data),
+            "root": str(dataset.root),
             "codebase_version": info["codebase_version"],
             "fps": info["fps"],
             "total_episodes": info["total_episodes"],
             "total_frames": info["total_frames"],
             "features": info["features"],
         },
-        "features": features.to_dict(),
+        "features": dataset.features.to_dict(),
         "normalization": dict(model.normalizer.modes),
-        "stats": stats_subset(stats, features.keys),
+        "stats": stats_subset(dataset.stats, dataset.features.keys),
         "versions": {"torch": torch.__version__},
     }
-    run_cfg = json.loads(json.dumps(run_cfg))  # the form config.json holds (tuples as lists)
-    start = 0
-    if old is not None:
-        conflicts = _resume_conflicts(old, run_cfg)
-        if conflicts:
-            raise ValueError(
-                f"{out} cannot be resumed with {', '.join(conflicts)}: leave those options out "
-                "(the run's are used) or train into a new folder"
-            )
-        if state is not None and int(state["step"]) > cfg.steps:
-            raise ValueError(
-                f"{out} has trained {int(state['step'])} steps already; --steps is the total, "
-                f"so give more than that to continue (got {cfg.steps})"
-            )
-    if state is not None:
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        gen.set_state(state["rng"]["model"].cpu())
-        loader_gen.set_state(state["rng"]["loader"].cpu())
-        start = int(state["step"])
-    runio.write_run_config(out, run_cfg)
+    return json.loads(json.dumps(run_cfg))
 
+
+def _check_resume(cfg: ILTrainConfig, old: dict | None, state: dict | None, run_cfg: dict) -> None:
+    """Refuse to resume a run with other options, or to a total below its steps so far."""
+    if old is None:
+        return
+    conflicts = _resume_conflicts(old, run_cfg)
+    if conflicts:
+        raise ValueError(
+            f"{cfg.out} cannot be resumed with {', '.join(conflicts)}: leave those options out "
+            "(the run's are used) or train into a new folder"
+        )
+    if state is not None and int(state["step"]) > cfg.steps:
+        raise ValueError(
+            f"{cfg.out} has trained {int(state['step'])} steps already; --steps is the total, "
+            f"so give more than that to continue (got {cfg.steps})"
+        )
+
+
+def _batches(cfg: ILTrainConfig, ds, loader_gen: torch.Generator, dev: torch.device):
+    """Endless shuffled batches of ``ds`` in the order ``loader_gen`` draws."""
     loader = torch.utils.data.DataLoader(
         ds,
         batch_size=cfg.batch_size,
@@ -311,13 +338,32 @@ def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
         pin_memory=dev.type == "cuda",
         persistent_workers=cfg.num_workers > 0,
     )
+    while True:
+        yield from loader
 
-    def batches():
-        while True:
-            yield from loader
 
+def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
+    out = Path(cfg.out)
+    old, state = _resume_state(cfg)
+    dev = torch.device(cfg.device)
+    spec = get_policy(cfg.policy)
+    learner = _learner(cfg, pcfg, spec, dataset, dev)
+    run_cfg = _run_config(cfg, pcfg, spec, dataset, learner.model)
+    _check_resume(cfg, old, state, run_cfg)
+    start = learner.load(state) if state is not None else 0
+    runio.write_run_config(out, run_cfg)
+    batches = _batches(cfg, dataset.frames, learner.loader_gen, dev)
+    return _loop(cfg, pcfg, learner, batches, start, dev)
+
+
+def _loop(cfg: ILTrainConfig, pcfg, learner: _Learner, batches, start: int, dev) -> ILTrainResult:
+    """Train from step ``start`` to ``cfg.steps``: log every ``log_every`` steps, save every
+    ``save_every`` (and every ``save_minutes``), save and stop cleanly on bad data or Ctrl-C."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    out = Path(cfg.out)
+    model, opt, sched, gen = learner.model, learner.opt, learner.sched, learner.gen
     tb = SummaryWriter(str(out / "tb"))
-    it = batches()
     sums: dict[str, float] = {}
     n_sum = 0
     last_loss = float("nan")
@@ -334,22 +380,12 @@ def _train(cfg: ILTrainConfig, pcfg, dataset: _Dataset) -> ILTrainResult:
     timed: Path | None = None  # the last checkpoint written for time, not on the step grid
 
     def save(step: int) -> Path:
-        return runio.save_checkpoint(
-            out,
-            step,
-            {
-                "model": model.state_dict(),
-                "optimizer": opt.state_dict(),
-                "scheduler": sched.state_dict(),
-                "step": step,
-                "rng": {"model": gen.get_state(), "loader": loader_gen.get_state()},
-            },
-        )
+        return runio.save_checkpoint(out, step, learner.state(step))
 
     try:
         while step < cfg.steps:
             try:
-                raw = next(it)
+                raw = next(batches)
             except Exception:  # bad data (an undecodable frame): keep what was learnt
                 path = save(step)
                 print(f"stopped at step {step} of {cfg.steps} by the error below; saved {path}. "

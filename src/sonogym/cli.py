@@ -652,6 +652,36 @@ def sweep(
             typer.echo(f"wrote {p}")
 
 
+def _pretrained_target(name: str, checkpoint: Path | None, out: Path | None):
+    """(run folder, weights, output folder) of the shipped policy ``name`` for ``eval``."""
+    from sonogym.evaluation import pretrained as shipped
+
+    if checkpoint is not None:
+        raise typer.BadParameter("--checkpoint is for --run; a pretrained policy has one")
+    try:
+        run, weights = shipped.pretrained_dir(name), shipped.weights(name)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    return run, weights, out or Path(f"runs/pretrained-{name}")
+
+
+def _test_patients(protocol: str, patients: list[str] | None):
+    """``eval``'s (env overrides, protocol): the protocol checked, or with ``--patients`` the
+    test patients in place of the protocol's (then no protocol)."""
+    from sonogym.evaluation.protocols import PROTOCOLS
+
+    if protocol not in PROTOCOLS:
+        raise typer.BadParameter(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
+    if not patients:
+        return None, protocol
+    if protocol != "idt":
+        raise typer.BadParameter(
+            f"--patients replaces the test patients; it cannot be combined with --protocol "
+            f"{protocol}, which sets its own"
+        )
+    return {"patients": parse_patients(patients)}, None
+
+
 @app.command("eval")
 def eval_(
     run: Annotated[
@@ -728,7 +758,6 @@ def eval_(
     """Evaluate a run's policy (or a shipped one), the task's expert and a random policy; print
     and save the table, the per-episode log (episodes/<protocol>.npz) and a trajectory figure."""
     from sonogym.evaluation import pretrained as shipped
-    from sonogym.evaluation.protocols import PROTOCOLS
     from sonogym.evaluation.rl_eval import (
         CONTROLLERS,
         check_writable,
@@ -744,24 +773,8 @@ def eval_(
         typer.echo(shipped.listing())
         return
     if pretrained is not None:
-        if checkpoint is not None:
-            raise typer.BadParameter("--checkpoint is for --run; a pretrained policy has one")
-        try:
-            run, checkpoint = shipped.pretrained_dir(pretrained), shipped.weights(pretrained)
-        except ValueError as e:
-            raise typer.BadParameter(str(e)) from None
-        out = out or Path(f"runs/pretrained-{pretrained}")
-
-    if protocol not in PROTOCOLS:
-        raise typer.BadParameter(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
-    overrides = None
-    if patients:
-        if protocol != "idt":
-            raise typer.BadParameter(
-                f"--patients replaces the test patients; it cannot be combined with --protocol "
-                f"{protocol}, which sets its own"
-            )
-        overrides, protocol = {"patients": parse_patients(patients)}, None
+        run, checkpoint, out = _pretrained_target(pretrained, checkpoint, out)
+    overrides, protocol = _test_patients(protocol, patients)
     log = name or protocol or "custom"
     stem = table_stem(log)
     dest = Path(out or run)

@@ -71,6 +71,43 @@ def evaluate(
     }
 
 
+def _gan_step(gen, disc, opt_g, opt_d, bce, x, us, l1_weight: float, gan_weight: float):
+    """One pix2pix update: the discriminator on (x, us) against (x, G(x)), then the generator
+    on L1 + GAN; returns the losses ({"l1", "gan", "d"}) and the generator's total loss."""
+    fake = gen(x)
+    opt_d.zero_grad(set_to_none=True)
+    d_real, d_fake = disc(x, us), disc(x, fake.detach())
+    loss_d = 0.5 * (bce(d_real, torch.ones_like(d_real)) + bce(d_fake, torch.zeros_like(d_fake)))
+    loss_d.backward()
+    opt_d.step()
+    opt_g.zero_grad(set_to_none=True)
+    d_fake = disc(x, fake)
+    loss_gan = bce(d_fake, torch.ones_like(d_fake))
+    loss_l1 = (fake - us).abs().mean()
+    loss_g = l1_weight * loss_l1 + gan_weight * loss_gan
+    loss_g.backward()
+    opt_g.step()
+    return {"l1": loss_l1.item(), "gan": loss_gan.item(), "d": loss_d.item()}, loss_g
+
+
+def _metrics(seed, steps, wall_s, history, final, evals, config) -> dict:
+    """``metrics.json``: the final held-out figures, the mean training L1 over the first and
+    the last tenth of the steps, and the settings."""
+    k = max(1, len(history) // 10)
+    return {
+        "seed": seed,
+        "steps": steps,
+        "wall_s": round(wall_s, 2),
+        "train_l1_first": sum(r["l1"] for r in history[:k]) / k,
+        "train_l1_last": sum(r["l1"] for r in history[-k:]) / k,
+        "test": final,
+        "test_history": evals,
+        "lpips": None,
+        "lpips_note": "LPIPS not computed: its pretrained weights cannot be downloaded offline",
+        "config": config,
+    }
+
+
 def train_pix2pix(
     data_dir: str | Path,
     out: str | Path,
@@ -122,24 +159,8 @@ def train_pix2pix(
         ct = _resize(train.ct[idx], size).to(device)
         us = _resize(train.us[idx], size).to(device)
         x = hist.match(random_down_up(ct, g))
-        fake = gen(x)
-        # discriminator
-        opt_d.zero_grad(set_to_none=True)
-        d_real, d_fake = disc(x, us), disc(x, fake.detach())
-        loss_d = 0.5 * (
-            bce(d_real, torch.ones_like(d_real)) + bce(d_fake, torch.zeros_like(d_fake))
-        )
-        loss_d.backward()
-        opt_d.step()
-        # generator
-        opt_g.zero_grad(set_to_none=True)
-        d_fake = disc(x, fake)
-        loss_gan = bce(d_fake, torch.ones_like(d_fake))
-        loss_l1 = (fake - us).abs().mean()
-        loss_g = l1_weight * loss_l1 + gan_weight * loss_gan
-        loss_g.backward()
-        opt_g.step()
-        rec = {"step": step, "l1": loss_l1.item(), "gan": loss_gan.item(), "d": loss_d.item()}
+        rec, loss_g = _gan_step(gen, disc, opt_g, opt_d, bce, x, us, l1_weight, gan_weight)
+        rec = {"step": step, **rec}
         history.append(rec)
         if step % log_every == 0 or step == steps - 1:
             bar.set_postfix(l1=f"{rec['l1']:.4f}", d=f"{rec['d']:.3f}")
@@ -163,23 +184,12 @@ def train_pix2pix(
             for k in ("ssim", "psnr", "l1"):
                 writer.add_scalar(f"test/{k}", final[k], steps)
         writer.close()
-    k = max(1, len(history) // 10)
-    metrics = {
-        "seed": seed,
-        "steps": steps,
-        "wall_s": round(time.time() - t0, 2),
-        "train_l1_first": sum(r["l1"] for r in history[:k]) / k,
-        "train_l1_last": sum(r["l1"] for r in history[-k:]) / k,
-        "test": final,
-        "test_history": evals,
-        "lpips": None,
-        "lpips_note": "LPIPS not computed: its pretrained weights cannot be downloaded offline",
-        "config": {
-            "width": width, "depth": depth, "batch_size": batch_size, "lr": lr,
-            "l1_weight": l1_weight, "gan_weight": gan_weight, "disc_width": disc_width,
-            "disc_layers": disc_layers, "input_size": list(size),
-        },
+    config = {
+        "width": width, "depth": depth, "batch_size": batch_size, "lr": lr,
+        "l1_weight": l1_weight, "gan_weight": gan_weight, "disc_width": disc_width,
+        "disc_layers": disc_layers, "input_size": list(size),
     }  # fmt: skip
+    metrics = _metrics(seed, steps, time.time() - t0, history, final, evals, config)
     save_generator(
         out / "generator.pt",
         gen.cpu(),

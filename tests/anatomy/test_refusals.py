@@ -225,6 +225,21 @@ def test_inf_is_refused_by_the_volume_itself(subj):
         Patient(ct=ct, labels=p.labels, affine=p.affine, name="x")
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("-inf")])
+def test_a_non_finite_voxel_in_any_slab_is_refused(monkeypatch, bad):
+    """The volume checks its CT a slab of x planes at a time: the last slab counts too."""
+    from sonogym.anatomy import volume
+
+    monkeypatch.setattr(volume, "_FINITE_CHUNK", 8)  # (5, 2, 3): one x plane per slab
+    ct, labels = torch.zeros(5, 2, 3), torch.zeros(5, 2, 3, dtype=torch.uint8)
+    Patient(ct=ct, labels=labels, affine=np.eye(4), name="x")
+    for where in ((0, 0, 0), (2, 1, 1), (4, 1, 2)):
+        bad_ct = ct.clone()
+        bad_ct[where] = bad
+        with pytest.raises(PatientError, match="NaN or inf"):
+            Patient(ct=bad_ct, labels=labels, affine=np.eye(4), name="x")
+
+
 def test_speckle_seed_follows_content_not_name(subj, tmp_path):
     a = load_totalsegmentator(subj, spacing=None)
     renamed = Path(shutil.copytree(subj, tmp_path / "other-name"))

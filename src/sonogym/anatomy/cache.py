@@ -27,7 +27,7 @@ def _digest(arrays: dict[str, np.ndarray], info: dict) -> str:
     for k in sorted(arrays):
         a = np.ascontiguousarray(arrays[k])
         h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
-        h.update(a.tobytes())
+        h.update(a.reshape(-1).view(np.uint8))  # the bytes in place, not a copy of them
     return h.hexdigest()
 
 

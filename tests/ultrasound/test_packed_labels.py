@@ -49,6 +49,21 @@ def test_pack_then_gather_returns_every_label_id():
     assert torch.equal(unpack_labels(nibbles, palette), labels)
 
 
+def test_packing_a_chunk_at_a_time_gives_the_same_buffers(monkeypatch):
+    """Blocks are packed a chunk at a time (bounded scratch): chunk edges and a short last
+    chunk change nothing."""
+    import sonogym.ultrasound._packed_labels as packed
+
+    g = torch.Generator().manual_seed(1)
+    labels = torch.randint(0, PALETTE, (41 * BLOCK,), generator=g, dtype=torch.uint8)
+    labels[5 * BLOCK : 9 * BLOCK] = 7  # single-label blocks across a chunk edge
+    whole = pack_labels(labels)
+    monkeypatch.setattr(packed, "_CHUNK_BLOCKS", 4)  # 10 chunks of 4 blocks, then 1
+    chunked = pack_labels(labels)
+    assert all(torch.equal(a, b) for a, b in zip(whole, chunked, strict=True))
+    assert torch.equal(unpack_labels(*chunked), labels)
+
+
 def test_a_block_with_more_than_16_labels_is_not_packed():
     labels = torch.zeros(2 * BLOCK, dtype=torch.uint8)
     labels[BLOCK:] = torch.arange(BLOCK) % (PALETTE + 1) + 1  # 17 ids in the second block

@@ -17,8 +17,8 @@ import torch
 BLOCK = 512
 #: Distinct labels a block may hold (4-bit indices).
 PALETTE = 16
-#: Blocks packed per step while building (bounds the int64 scratch to ~16 MB).
-_CHUNK_BLOCKS = 4096
+#: Blocks packed per step while building (bounds the scratch to ~10 MB).
+_CHUNK_BLOCKS = 1024
 
 
 def pack_labels(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -37,7 +37,8 @@ def pack_labels(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | Non
         )
     blocks = labels.view(-1, BLOCK)
     palette = torch.zeros(blocks.shape[0], PALETTE, dtype=torch.uint8)
-    index = torch.empty(blocks.shape, dtype=torch.uint8)
+    nibbles = torch.empty(labels.numel() // 2, dtype=torch.uint8).view(blocks.shape[0], -1)
+    index = torch.empty(min(_CHUNK_BLOCKS, blocks.shape[0]), BLOCK, dtype=torch.uint8)
     for s in range(0, blocks.shape[0], _CHUNK_BLOCKS):
         ordered, order = torch.sort(blocks[s : s + _CHUNK_BLOCKS], dim=1)
         first = torch.ones(ordered.shape, dtype=torch.long)
@@ -45,11 +46,12 @@ def pack_labels(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | Non
         rank = first.cumsum_(1).sub_(1)  # palette index of each sorted voxel
         if int(rank[:, -1].max()) >= PALETTE:
             return None
-        palette[s : s + _CHUNK_BLOCKS].scatter_(1, rank, ordered)  # equal labels, equal values
-        index[s : s + _CHUNK_BLOCKS].scatter_(1, order, rank.to(torch.uint8))
-    pairs = index.view(-1, 2)
-    nibbles = pairs[:, 1].bitwise_left_shift(4).bitwise_or_(pairs[:, 0])
-    return nibbles, palette.view(-1)
+        k = ordered.shape[0]
+        palette[s : s + k].scatter_(1, rank, ordered)  # equal labels, equal values
+        pairs = index[:k].scatter_(1, order, rank.to(torch.uint8)).view(k, -1, 2)
+        out = nibbles[s : s + k]
+        torch.bitwise_left_shift(pairs[..., 1], 4, out=out).bitwise_or_(pairs[..., 0])
+    return nibbles.view(-1), palette.view(-1)
 
 
 def gather_labels(

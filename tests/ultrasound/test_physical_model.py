@@ -1,4 +1,4 @@
-"""Realism checks of the ``physical`` model (ultrasound_physics.md §0, §2)."""
+"""Realism checks of the ``physical`` model: bright bone over a shadow, speckle, depth."""
 
 import dataclasses
 import math

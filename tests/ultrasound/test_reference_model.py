@@ -1,4 +1,4 @@
-"""The ``reference`` model against the reference's model (reference_implementation.md §1.7-§1.8),
+"""The ``reference`` model against the reference's model (the authors' reference code),
 recomputed here by hand with numpy on tiny inputs, term by term."""
 
 import dataclasses
@@ -172,7 +172,7 @@ def test_large_scale_modulation_is_per_env_and_patient_fixed():
 
 
 def test_magnitude_matches_the_reference_on_a_block_phantom():
-    """reference_implementation.md §1.8: bone peak 15-21, soft-tissue mean 2.6-3.4 (raw)."""
+    """The authors' reference code: bone peak 15-21, soft-tissue mean 2.6-3.4 (raw)."""
     p = block_patient(soft_depth=0.01, muscle_depth=0.015, ct_noise=10.0)
     sl = Slicer(p)
     pos, rot = straight_down(

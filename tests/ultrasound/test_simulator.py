@@ -147,7 +147,7 @@ def test_the_former_preset_spellings_are_refused():
 
 
 def test_memory_is_small(slicer):
-    """Nothing dense per patient: tables and scratch only (DESIGN.md §7: <= 300 MB/patient)."""
+    """Nothing dense per patient: tables and scratch only (<= 300 MB/patient)."""
     sim = ModelBasedSimulator("physical")
     sim.simulate(slicer(*random_poses(4, seed=5)))
     assert sim.nbytes < 40e6

@@ -53,7 +53,7 @@ def _r(a: str, b: str) -> float:
 
 
 def test_physical_reflection_coefficients_match_the_literature():
-    # ultrasound_physics.md §2: soft tissue/bone amplitude R 0.58-0.70, fat/muscle ~0.1,
+    # Literature: soft tissue/bone amplitude R 0.58-0.70, fat/muscle ~0.1,
     # tissue/air ~ -1
     assert 0.58 <= _r("muscle", "bone") * 1.09 <= 0.70  # bone at 1400 HU: CT ratio 2400/2200
     assert 0.5 <= _r("soft_tissue", "bone") <= 0.70

@@ -1,6 +1,6 @@
 """Probe geometry: the pixel grid of an ultrasound image (2-D) or volume (3-D) in the probe frame.
 
-Probe frame {U} (DESIGN.md §3): origin at the centre of the probe face, z along the beam into the
+Probe frame {U} (docs/design.md): origin at the centre of the probe face, z along the beam into the
 body, x along the image's lateral axis, y = elevation. Images are arrays (E, H, W): E elevation
 slices, H depth rows (row 0 at the probe face), W lateral columns. Pixel (e, j, i) sits at
 

@@ -6,7 +6,7 @@ so a coarser probe blurs the same tissue by the same physical amount.
 
 The blur is written as shifted multiply-adds on views (zero "same" padding, like the reference's
 ``conv2d(padding=5)``): on CPU that is 3x faster than ``conv1d``/``conv2d`` with small kernels
-(DESIGN.md §7) and it runs unchanged on CUDA.
+(the project's speed budget) and it runs unchanged on CUDA.
 """
 
 from __future__ import annotations

@@ -5,10 +5,10 @@ B-mode images in [0, 1], batched over envs and elevation slices, with the same c
 CUDA. Every image is a function of its slices and its patient-fixed speckle only: the same pose
 gives the same image, and the result does not depend on the batch it was computed in.
 
-Two ultrasound models (DESIGN.md §5, §6):
+Two ultrasound models (docs/design.md):
 
 ``reference`` -- the reference implementation's CT-mode model, exactly
-(reference_implementation.md §1.7-§1.8), with its constants restated in physical units so that
+(the authors' reference code), with its constants restated in physical units so that
 at 0.5 mm pixels they equal the reference's per-pixel constants:
 
 1. C = (clip(HU, -300, 3000) + 300) / 3300 * 255, Z = 100 C;
@@ -111,7 +111,7 @@ _LOG2_E = 1.0 / math.log(2.0)
 @dataclass(frozen=True, eq=False)
 class ReferenceModel:
     """The ``reference`` model: the reference's CT-mode model (values from
-    reference_implementation.md §1.1, §1.7, §1.8, in physical units)."""
+    the authors' reference code, in physical units)."""
 
     e_s_ratio: float = 20.0  # weight of the reflection term
     i0: float = 1.0  # initial energy
@@ -143,7 +143,7 @@ class PhysicalModel:
     """The ``physical`` model: the paper's full model with literature acoustics.
 
     The centre frequency is 3.5 MHz, a lumbar curvilinear probe's (2-5 MHz reach the 6-8 cm
-    lamina depth; ultrasound_physics.md §2): a 10 MHz linear probe would lose 60+ dB in muscle
+    lamina depth): a 10 MHz linear probe would lose 60+ dB in muscle
     before the lamina."""
 
     frequency: float = 3.5e6  # Hz, centre frequency

@@ -15,7 +15,7 @@ Dropout happens after the first-hit search, so a dropped point leaves its scan l
 never exposes a deeper surface; a missed segmentation does not make bone transparent. This
 differs from the reference implementation, which drops edge pixels first and then takes the
 first remaining one per column (a dropped top edge exposes a deeper one), and whose other
-vertebrae did not occlude the target (reference_implementation.md §5).
+vertebrae did not occlude the target (the authors' reference code).
 
 Each point sits at its pixel's centre in the patient frame: origin + row * row_step +
 col * col_step (the ``Slicer``'s pixel geometry), metres.

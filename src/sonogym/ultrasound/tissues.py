@@ -5,7 +5,7 @@ v2 ids 1-117, project ids 118-124) maps to one tissue in each model; ``GEL`` (25
 label the simulator gives to air in the first millimetres under the probe face (coupling gel).
 Ids the tables do not list (125-254) image as generic soft tissue.
 
-``reference`` model (reference_implementation.md §1.2-§1.3): the reference's ImFusion-style tissue
+``reference`` model (the authors' reference code): the reference's ImFusion-style tissue
 ids with its parameters copied exactly, and the *intended* TotalSegmentator -> tissue mapping of
 its ``label_conversion.yaml`` (liver -> 11, kidneys -> 6, ...), not the chained in-place
 relabelling that sent liver and kidneys to "lung". Its attenuation ``alpha`` is in the
@@ -17,14 +17,14 @@ TotalSegmentator's spinal_cord mask covers in the lumbar canal); spinal ligament
 thoracolumbar fascia -> 12 (the reference has no ligament tissue; their echo comes from their CT
 contrast with fat and muscle, which the model's CT-based reflection sees).
 
-``physical`` model (ultrasound_physics.md §1): literature impedance (MRayl) and attenuation
+``physical`` model (literature values, sources below): literature impedance (MRayl) and attenuation
 (dB/cm/MHz); scattering mu0 / mu1 / sigma0 with the paper's meaning (scatterer amplitude
 mu0 + sigma0 * N0 where N1 <= mu1), chosen so that parenchyma gives fully developed speckle
 (mu1 = 2: 98 % of pixels scatter) and fluids are near-anechoic; ``hu`` is the tissue's nominal
 CT value. The impedance is refined by the CT through ``HU_IMPEDANCE``, a monotone CT -> impedance
 curve through the same literature values: a pixel's impedance is Z_tissue * m(HU) / m(hu).
 Sources: [B] Burger et al. 2013 table, [S] Sensors 2023, [D] Diagnostics 2023, [I] ImFusion,
-[R] recalled / chosen here (see ultrasound_physics.md §1a).
+[R] recalled / chosen here.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class Tissue:
 
 
 # ---------------------------------------------------------------------------- reference
-#: The reference's tissue table (ImFusion-style ids), reference_implementation.md §1.2.
+#: The authors' reference code's tissue table (ImFusion-style ids).
 #: All tissues also share the large-scale amplitude A_l = 0.08 and cell f_l = 30 px (15 mm).
 REFERENCE_TISSUES: dict[int, Tissue] = {
     0: Tissue(0.2, 0.04, 0.0, 0.0, 0.0),  # background / outside the body

@@ -100,6 +100,15 @@ def test_done_commands_are_skipped_partial_ones_resume_and_reports_follow(tmp_pa
     _touch(tmp_path / "runs/il/checkpoints/step_000000300.pt")
     assert R.status(il) == "done"
 
+    sweep = R._step("sonogym sweep --task navigation --algo ppo --seeds 3 --out runs/sw")
+    assert R.status(sweep) == "todo"
+    _touch(tmp_path / "runs/sw/sweep.json", "{}")  # started, interrupted before its summary
+    assert R.status(sweep) == "partial"
+    assert R.to_run([sweep])[0][0].argv[-1] == "--resume"
+    _touch(tmp_path / "runs/sw/sweep.md")
+    _run_config(tmp_path / "runs/sw/runs/r0", _CURRENT)
+    assert R.status(sweep) == "done"
+
 
 def test_reproduce_runs_what_is_left_in_order_and_stops_at_a_failure(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

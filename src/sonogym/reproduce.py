@@ -9,7 +9,8 @@ another, each in its own process, and skips a command whose output is already co
 * ``il-train``: the run's ``step_<steps>.pt``; a partial run continues with ``--resume``;
 * ``record``: the dataset's ``meta/info.json`` holds the asked number of episodes; a partial
   dataset continues with ``--resume``;
-* ``sweep``: its ``sweep.md``; ``eval``: its table (``eval.json``, ``eval-<protocol>.json``
+* ``sweep``: its ``sweep.md``; a sweep folder without it (``sweep.json`` only) continues
+  with ``--resume``; ``eval``: its table (``eval.json``, ``eval-<protocol>.json``
   or ``eval-<name>.json``); ``report``: ``report.md``; ``plot``: ``curves.md``, unless a
   command before it in the recipe still has to run (it reads that command's output).
 
@@ -440,6 +441,10 @@ def status(step: Step) -> str:
     cmd, out = step.argv[0], _out(step)
     if cmd == "eval":
         return "done" if _eval_table(step).is_file() else "todo"
+    if cmd == "sweep" and not (out / _FINAL_FILE[cmd]).is_file():
+        from sonogym.agents.sweep import SWEEP_FILE
+
+        return "partial" if (out / SWEEP_FILE).is_file() else "todo"
     if cmd in _FINAL_FILE:
         return "done" if (out / _FINAL_FILE[cmd]).is_file() else "todo"
     if cmd == "record":

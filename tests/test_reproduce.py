@@ -104,7 +104,17 @@ def test_done_commands_are_skipped_partial_ones_resume_and_reports_follow(tmp_pa
     assert R.status(sweep) == "todo"
     _touch(tmp_path / "runs/sw/sweep.json", "{}")  # started, interrupted before its summary
     assert R.status(sweep) == "partial"
-    assert R.to_run([sweep])[0][0].argv[-1] == "--resume"
+    # resumed as sweep.json defines it: the options that define a sweep are left out
+    assert R.to_run([sweep])[0][0].argv == (
+        "sweep",
+        "--task",
+        "navigation",
+        "--algo",
+        "ppo",
+        "--out",
+        "runs/sw",
+        "--resume",
+    )
     _touch(tmp_path / "runs/sw/sweep.md")
     _run_config(tmp_path / "runs/sw/runs/r0", _CURRENT)
     assert R.status(sweep) == "done"

@@ -461,6 +461,19 @@ def status(step: Step) -> str:
     return "todo"
 
 
+#: What ``sweep --resume`` still takes: the rest is fixed by the sweep's ``sweep.json``.
+_SWEEP_RESUME_OPTIONS = ("--task", "--algo", "--out", "--max-concurrent", "--address")
+
+
+def _resumed(step: Step) -> tuple[str, ...]:
+    """The argv that continues ``step``'s partial output (before ``--resume``): the same
+    command, except that a sweep keeps only the options its stored definition does not fix."""
+    if step.argv[0] != "sweep":
+        return step.argv
+    kept = [(k, step.option(k)) for k in _SWEEP_RESUME_OPTIONS if step.option(k) is not None]
+    return ("sweep", *(a for kv in kept for a in kv))
+
+
 #: Commands that replace their output only when told to (``--force``).
 _FORCED = ("train", "record", "il-train", "sweep")
 
@@ -481,7 +494,7 @@ def to_run(steps: Sequence[Step]) -> list[tuple[Step, str]]:
         if s.argv[0] in ("train", "il-train") and st != "done":
             remade.add(_out(s))
         if st == "partial":
-            s = dataclasses.replace(s, argv=(*s.argv, "--resume"))
+            s = dataclasses.replace(s, argv=(*_resumed(s), "--resume"))
         if st == "stale" and s.argv[0] in _FORCED:
             s = dataclasses.replace(s, argv=(*s.argv, "--force"))
         pending |= st != "done"

@@ -4,12 +4,12 @@
 
 From ``sonogym eval`` episode logs (the ``policy`` controller's tracked point at the end of each
 episode, x across the spine and z along it, mm from {G}): the median |x| and |z|, the share of
-level misses (|z| > ``LEVEL_MM``, a neighbouring vertebra's view: adjacent lumbar levels lie
-~35 mm apart, so 20 mm is past halfway to the next), and the frontal-plane error's
-mean, median and share within 10 mm as run and with one part removed: x = 0 (only the error
-along the spine left), z = 0 (only the error across it), and level misses' z set to 0 (those
-episodes moved to the goal's height, the others as run). A target that the error across the
-spine alone already misses cannot be met by better level finding, and the other way round.
+level misses (|z| > ``LEVEL_MISS_MM``, the navigation env's ``level_miss`` metric), and the
+frontal-plane error's mean, median and share within 10 mm as run and with one part removed:
+x = 0 (only the error along the spine left), z = 0 (only the error across it), and level
+misses' z set to 0 (those episodes moved to the goal's height, the others as run). A target
+that the error across the spine alone already misses cannot be met by better level finding,
+and the other way round.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import argparse
 
 import numpy as np
 
+from sonogym.envs.navigation import LEVEL_MISS_MM as LEVEL_MM
 from sonogym.evaluation.episodes import load_log
 
-LEVEL_MM = 20.0  # |z| beyond this: the episode ended at another vertebra's view
 WITHIN_MM = 10.0
 
 

@@ -142,9 +142,26 @@ def test_autoreset_same_step_returns_final_obs_and_metrics():
     assert trunc.all() and not term.any()
     assert info["_final_obs"].all()
     assert info["final_obs"].shape == obs.shape and not torch.equal(info["final_obs"], obs)
-    for k in ("position_error_mm", "angle_error_deg", "return"):
+    for k in ("position_error_mm", "angle_error_deg", "level_miss", "return"):
         assert info["final_info"][k].shape == (2,)
     assert (env.episode_length_buf == 0).all()
+
+
+def test_level_miss_counts_episodes_ending_past_20_mm_along_the_spine(monkeypatch):
+    from sonogym.envs.navigation import LEVEL_MISS_MM
+
+    env = _env(4, obs_mode="state", robot=None)
+    env.reset(seed=0)
+    g = env.goal_cmd
+    dz = torch.tensor([19.0, 21.0, -25.0, 0.0], dtype=g.dtype) * 1e-3  # along the spine
+    dx = torch.tensor([0.0, 0.0, 0.0, 30.0], dtype=g.dtype) * 1e-3  # across it: no level miss
+    reached = (g[:, 0] + dx, g[:, 1] + dz, g[:, 2], torch.zeros_like(dz))
+    monkeypatch.setattr(env.scene, "measured_command", lambda sl=slice(None): reached)
+    assert LEVEL_MISS_MM == 20.0
+    assert env.level_miss().tolist() == [0.0, 1.0, 1.0, 0.0]
+    m = env._episode_metrics(torch.arange(4))
+    assert m["level_miss"].tolist() == [0.0, 1.0, 1.0, 0.0]
+    assert torch.allclose(m["position_error_mm"], torch.tensor([19.0, 21.0, 25.0, 30.0]))
 
 
 def test_bad_actions_and_options_raise():

@@ -3,29 +3,31 @@ for the phantoms the cache does not hold yet; refused up front when it does not 
 
 Memory (``env_memory``): ``BASE + per_env N + (PATIENT_FIXED + (per_patient - PATIENT_FIXED)
 s) P + load_peak s`` bytes, with ``s = (1 mm / spacing)^3``, ``N`` envs, ``P`` distinct patients and
-the task's ``EnvMemory`` constants. They were measured as the RSS growth of a fresh process
+the task's ``EnvMemory`` constants. They were measured as the memory growth of a fresh process
 (one torch thread) that imports sonogym, builds the env with default options at 1 mm and takes
-three expert steps:
+three expert steps (``benchmarks/footprint.py``):
 
 =============== ====================== ======================= ==========================
 task            per env (1 -> 64 envs)  per patient (1 -> 3)     load peak (high-water mark)
 =============== ====================== ======================= ==========================
-navigation      0.88 MB (1 -> 256)      39 MB (1 -> 3)           125 MB
-reconstruction  2.24 MB                 165 MB                   220 MB
-surgery         0.81 MB                 127 MB                   136 MB
+navigation      0.88 MB (1 -> 256)      46 MB                    166 MB
+reconstruction  2.24 MB                 202 MB                   269 MB
+surgery         0.81 MB                 196 MB                   23 MB
 =============== ====================== ======================= ==========================
 
-Per patient is the growth of the peak from 1 to 3 patients (4 envs, 2026-11-27). Navigation
-crops each patient as it loads and keeps no full volume, so its patients cost their slicer crop
-(its resident memory grows by 29.5 MB per patient); reconstruction and surgery load every
-patient whole before cropping (resident growth 83 and 34.5 MB). ``BASE`` is what is left of one
-env on one patient (25-60 MB); ``PATIENT_FIXED`` the part of a patient that does not scale with
-its voxels (surface maps, landmarks). Real TotalSegmentator folders are counted
-as phantoms at the same spacing (their loader checks its own peak). Other options move the
-figure: ``obs_mode="state"`` renders no images (less), navigation's ``"us_memory"`` keeps
-``memory_lag`` + 1 images per env (0.93 MB more per env at the default 30; ``"us_scan"`` one
-image more), ``crop_to_reach=False``
-keeps whole volumes (more), the learned simulator adds its networks.
+Per patient is the growth of the process's high-water mark from 1 to 3 patients (4 envs,
+phantom generator 10, phantoms in the cache); the load peak is what is left of the
+high-water mark of one patient after ``BASE``, its envs and the patient. Navigation crops
+each patient as it loads and keeps no full volume, so its patients cost their slicer crop
+(its resident memory grows by 38 MB per patient); reconstruction and surgery hold every
+patient whole before cropping (resident growth 84 and 39 MB per patient). ``BASE`` is what
+is left of one env on one patient (25-60 MB); ``PATIENT_FIXED`` the part of a patient that
+does not scale with its voxels (surface maps, landmarks). Real TotalSegmentator folders are
+counted as phantoms at the same spacing (their loader checks its own peak). Other options
+move the figure: ``obs_mode="state"`` renders no images (less), navigation's
+``"us_memory"`` keeps ``memory_lag`` + 1 images per env (0.93 MB more per env at the
+default 30; ``"us_scan"`` one image more), ``crop_to_reach=False`` keeps whole volumes
+(more), the learned simulator adds its networks.
 
 Disk: each phantom seed not yet in the cache adds ``anatomy.phantom.cache_entry_bytes`` (90 MB
 at 1 mm; 65-84 MB measured, 17-21 s to build each) under ``$SONOGYM_CACHE``.

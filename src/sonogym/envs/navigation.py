@@ -63,6 +63,8 @@ in [1.5, 3.5] rad; envs spread over the configured patients (env i -> patient i 
 
 **Metrics** (``info["final_info"]`` when an episode ends): ``position_error_mm`` = frontal-plane
 (x, z) distance of the reached probe from {G}; ``angle_error_deg`` = |wrap(alpha - alpha_G)|;
+``level_miss`` = 1 where the probe ended more than ``LEVEL_MISS_MM`` from {G} along the spine
+(a neighbouring vertebra's view), else 0 (its mean over episodes is the level-miss rate);
 ``return``.
 
 ``info`` every step: ``state`` (N, 6) = (p in m, q in rad) of {U} in {G}; ``command`` (N, 3);
@@ -104,6 +106,9 @@ OBS_MODES: tuple[str, ...] = get_args(ObsMode)
 MEMORY_MODES: tuple[str, ...] = ("us_memory", "us_scan")
 #: the modes whose observation is a Dict (``observe_tilt`` adds its entry to them)
 DICT_MODES: tuple[str, ...] = ("us_heading", *MEMORY_MODES)
+#: Along-spine distance (mm) from {G} beyond which an episode ended at another vertebra's view:
+#: adjacent lumbar levels lie ~35 mm apart, so 20 mm is past halfway to the next.
+LEVEL_MISS_MM = 20.0
 
 
 @dataclass(frozen=True)
@@ -365,6 +370,13 @@ class NavigationEnv(TaskEnv):
             "cost": torch.zeros(self.num_envs, device=self.device),
         }
 
+    def level_miss(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """1.0 where the reached probe is more than ``LEVEL_MISS_MM`` from {G} along the spine
+        (z), else 0.0."""
+        sl = slice(None) if env_ids is None else env_ids
+        _, z, _, _ = self.scene.measured_command(sl)
+        return ((z - self.goal_cmd[sl][:, 1]).abs() * 1e3 > LEVEL_MISS_MM).float()
+
     def errors(self, env_ids: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Frontal-plane position error (mm) and |wrap(alpha - alpha_G)| (deg) of the reached
         probe poses."""
@@ -377,7 +389,8 @@ class NavigationEnv(TaskEnv):
 
     def _episode_metrics(self, env_ids: torch.Tensor) -> dict[str, torch.Tensor]:
         pos, ang = self.errors(env_ids)
-        return {"position_error_mm": pos, "angle_error_deg": ang}
+        return {"position_error_mm": pos, "angle_error_deg": ang,
+                "level_miss": self.level_miss(env_ids)}  # fmt: skip
 
     def _render_frame(self) -> np.ndarray:
         img = self.scene.observe("us", torch.zeros(1, dtype=torch.long, device=self.device))
@@ -410,11 +423,12 @@ SPEC = TaskSpec(
     metrics=(
         Metric("position_error_mm", "position error", "mm", tolerance=10.0),
         Metric("angle_error_deg", "rotation error", "deg"),
+        Metric("level_miss", "level missed", "%", scale=100.0),
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
     demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
     agents="sonogym.tasks.navigation.agents:TRAINING",  # its RL defaults
-    memory=EnvMemory(per_env=0.88e6, per_patient=39e6, load_peak=125e6),  # measured, bytes
+    memory=EnvMemory(per_env=0.88e6, per_patient=46e6, load_peak=166e6),  # measured, bytes
     dataset=DatasetSpec(
         features=(
             Feature(

@@ -608,5 +608,5 @@ SPEC = TaskSpec(
         image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
     ),
     agents="sonogym.tasks.reconstruction.agents:TRAINING",  # its RL defaults
-    memory=EnvMemory(per_env=2.24e6, per_patient=165e6, load_peak=220e6),  # measured, bytes
+    memory=EnvMemory(per_env=2.24e6, per_patient=202e6, load_peak=269e6),  # measured, bytes
 )

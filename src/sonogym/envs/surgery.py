@@ -622,7 +622,7 @@ SPEC = TaskSpec(
     # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
     agents="sonogym.tasks.surgery.agents:TRAINING",  # its RL defaults
-    memory=EnvMemory(per_env=0.81e6, per_patient=127e6, load_peak=136e6),  # measured, bytes
+    memory=EnvMemory(per_env=0.81e6, per_patient=196e6, load_peak=23e6),  # measured, bytes
     dataset=DatasetSpec(
         features=(
             *(_slice_feature(i) for i in range(5)),

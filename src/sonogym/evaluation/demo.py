@@ -121,7 +121,8 @@ def _write_sheet(path: Path, sheet: list[tuple[int, np.ndarray]], name: str) -> 
         ax.axis("off")
     for ax, (t, img) in zip(axes.flat, sheet, strict=False):
         ax.imshow(img, cmap="gray", vmin=0, vmax=1, aspect="equal")
-        ax.set_title(f"{name}, step {t}")
+        ax.set_title(f"step {t}")  # the controller once, above: long names ran into each other
+    fig.suptitle(name)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

@@ -802,6 +802,46 @@ def eval_(
     )
 
 
+@app.command()
+def select(
+    run: Annotated[Path, typer.Option(help="Run folder written by `sonogym train`.")],
+    patients: Annotated[
+        list[str],
+        typer.Option(
+            help="Selection patients: phantom seeds, ranges A-B, subject folders or variants "
+            "DIR@N; repeatable. Keep them apart from the patients your figures report on."
+        ),
+    ],
+    metric: Annotated[
+        str | None, typer.Option(help="Metric to select on (default: the task's first).")
+    ] = None,
+    trials: Annotated[int, typer.Option(help="Episodes per checkpoint.")] = 50,
+    envs: Annotated[int | None, typer.Option(help="Parallel envs (default 16).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the selection episodes' starts.")] = 2000,
+    checkpoint: Annotated[
+        list[Path] | None,
+        typer.Option(help="Only these checkpoints (repeatable; default: all of the run's)."),
+    ] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda[:i].")] = "cpu",
+) -> None:
+    """Choose a run's checkpoint on selection patients: each checkpoint's policy is evaluated
+    there and the best mean of the metric wins (<run>/selection.json, selection.md; each
+    evaluation in <run>/selection/). `sonogym export` then ships that checkpoint and refuses
+    a model card that reports a figure on a selection patient."""
+    from sonogym.evaluation.selection import select_checkpoint, selection_markdown
+
+    _check_positive(("--trials", trials), ("--envs", envs))
+    try:
+        summary = select_checkpoint(
+            run, parse_patients(patients), metric=metric, trials=trials, envs=envs, seed=seed,
+            checkpoints=checkpoint, device=device, log=lambda m: typer.echo(m, err=True),
+        )  # fmt: skip
+    except (FileNotFoundError, KeyError, ValueError) as e:
+        raise typer.BadParameter(str(e).strip("'\"")) from None
+    typer.echo(selection_markdown(summary), nl=False)
+    typer.echo(f"wrote {run}/selection.json, selection.md, selection/")
+
+
 @app.command(context_settings={"allow_extra_args": True})
 def plot(
     ctx: typer.Context,
@@ -883,7 +923,11 @@ def export(
         ),
     ] = None,
     checkpoint: Annotated[
-        Path | None, typer.Option(help="Checkpoint (default: the run's newest readable one).")
+        Path | None,
+        typer.Option(
+            help="Checkpoint (default: the one `sonogym select` chose, else the run's newest "
+            "readable one)."
+        ),
     ] = None,
     notes: Annotated[str, typer.Option(help="Text for the model card's notes.")] = "",
     force: Annotated[

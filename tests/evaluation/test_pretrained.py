@@ -149,3 +149,42 @@ def test_the_shipped_navigation_policy_loads_weights_only_and_acts():
     card = P.read_card("navigation")
     assert card["training_patients"] == list(range(100, 164))  # phantoms only (no held-out seed)
     assert {"odt-patient", "real-subject"} <= set(card["evaluations"])
+
+
+def test_select_picks_the_best_checkpoint_on_its_patients_and_export_ships_it(tiny_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    args = ["select", "--run", str(run), "--patients", "3", "--trials", "4", "--envs", "4",
+            "--checkpoint", str(run / "checkpoints" / "agent_0.pt"),
+            "--checkpoint", str(run / "checkpoints" / "agent_64.pt")]  # fmt: skip
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    sel = json.loads((run / "selection.json").read_text())
+    assert sel["metric"] == "position_error_mm" and sel["patients"] == ["3"]
+    means = {r["checkpoint"]: r["results"]["position_error_mm"][0] for r in sel["checkpoints"]}
+    assert sorted(means) == ["agent_0.pt", "agent_64.pt"]
+    assert sel["selected"] == min(means, key=means.get)
+    # each checkpoint's evaluation is kept apart from the run's own, on the selection patient
+    table = json.loads((run / "selection" / "eval-step-64.json").read_text())
+    assert table["checkpoint"] == "agent_64.pt" and table["env_overrides"]["patients"] == [3]
+    assert not list(run.glob("eval*.json"))
+
+    # export ships the selected checkpoint by default, and its card says how it was chosen
+    P.export_pretrained(run, "nav-sel", root=tmp_path / "shipped")
+    card = P.read_card("nav-sel", tmp_path / "shipped")
+    assert card["checkpoint"] == sel["selected"]
+    assert card["selection"]["patients"] == ["3"] and card["selection"]["trials"] == 4
+    # an evaluation of that checkpoint on a selection patient is not a test: refused
+    leak = {"protocol": "custom", "trials": 4, "seed": 1, "checkpoint": sel["selected"],
+            "env_overrides": {"patients": [3]}, "results": {}}  # fmt: skip
+    (run / "eval-custom.json").write_text(json.dumps(leak))
+    with pytest.raises(ValueError, match="selected on patients"):
+        P.export_pretrained(run, "nav-sel2", root=tmp_path / "shipped")
+    assert not (tmp_path / "shipped" / "nav-sel2").exists()
+
+
+def test_select_refuses_an_unknown_metric(tiny_run):
+    res = CliRunner().invoke(
+        app, ["select", "--run", str(tiny_run), "--patients", "3", "--metric", "coverage"]
+    )
+    assert res.exit_code != 0 and "no metric 'coverage'" in res.output

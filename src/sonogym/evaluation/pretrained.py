@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sonogym.evaluation.selection import read_selection, tested_on_selection
 from sonogym.runs import (
     SHIPPED_WEIGHTS,
     RunFolder,
@@ -128,6 +129,9 @@ def export_pretrained(
         raise ValueError(f"name {name!r}: use lower-case letters, digits, '_' and '-'")
     run = Path(run)
     cfg = run_config(run)
+    selection = read_selection(run)
+    if checkpoint is None and selection is not None:
+        checkpoint = run / "checkpoints" / selection["selected"]  # sonogym select's choice
     if checkpoint is None:
         checkpoint = RunFolder(run, RL_RUN).require_checkpoint().path
     checkpoint = Path(checkpoint)
@@ -149,6 +153,7 @@ def export_pretrained(
     if cfg.get("init_from"):
         shipped_cfg["init_from"] = _source(cfg["init_from"])  # names, not this machine's paths
     card = _card(name, shipped_cfg, run, checkpoint, step, times, notes)
+    card["selection"] = _selection_entry(selection, checkpoint, card["evaluations"])
     saved = RunFolder(run, RL_RUN).checkpoints()
     card["run_reached_steps_per_env"] = saved[-1][0] if saved else step
     tmp = dest.with_name(f".{name}.partial{os.getpid()}")
@@ -167,6 +172,23 @@ def export_pretrained(
     for line in _warnings(run, card):
         warn(line)
     return dest
+
+
+def _selection_entry(selection, checkpoint: Path, evaluations: dict) -> dict | None:
+    """How the exported checkpoint was chosen (``sonogym select``), for the card; None when
+    it was not selected so. An evaluation on a selection patient is refused: its figure would
+    not be a test of the chosen checkpoint."""
+    if selection is None or selection["selected"] != checkpoint.name:
+        return None
+    leaked = tested_on_selection(selection, evaluations)
+    if leaked:
+        raise ValueError(
+            f"{checkpoint.name} was selected on patients that evaluation {'; '.join(leaked)} "
+            "tests on; its figure would not be a test. Evaluate on other patients (remove "
+            "that eval*.json) or select on other patients, then export again"
+        )
+    keys = ("metric", "better", "patients", "trials", "seed")
+    return {k: selection[k] for k in keys}
 
 
 def _warnings(run: Path, card: dict[str, Any]) -> list[str]:
@@ -241,6 +263,16 @@ def _source(init: dict) -> dict:
     }
 
 
+def _selection_line(sel: dict | None) -> list[str]:
+    if not sel:
+        return []
+    return [
+        f"- checkpoint chosen by `sonogym select` on patients {', '.join(sel['patients'])} "
+        f"({sel['better']} {sel['metric']}, {sel['trials']} episodes from seed {sel['seed']}), "
+        "none of which an evaluation below tests on"
+    ]
+
+
 def _init_from_line(init: dict | None) -> list[str]:
     if not init:
         return []
@@ -289,6 +321,7 @@ def card_markdown(card: dict[str, Any]) -> str:
         f"{_progress_text(card)}, {card.get('cpu_minutes')} CPU minutes "
         f"({card.get('wall_minutes')} wall); checkpoint {card['checkpoint']}",
         *_init_from_line(card.get("init_from")),
+        *_selection_line(card.get("selection")),
         f"- evaluate: `sonogym eval --pretrained {card['name']} --out DIR` (add `--patients` "
         "for your own subjects)",
         "",

@@ -60,8 +60,8 @@ reference avoided the trap with dense shaping everywhere. Here the unsafe region
 C_free formula's shaping toward p_l (the reference's dense term), so leaving the corridor
 gives back everything the insertion earned, and each unsafe step costs ``unsafe_penalty``
 (0.3) more: enough that pushing through the target does not pay, small enough that crossing
-the corridor's entrance is worth the risk (docs/envs.md, "Deviation from the paper's 0
-otherwise", gives the measured returns).
+the corridor's entrance is worth the risk (benchmarks/README.md, "Surgery reward: returns of
+simple policies", gives the measured returns).
 Being paid for the current state (not the deepest point reached, as a guard on the paper's
 formula did before) means backing out of the corridor gives back what going in earned.
 Consequences, tested: no closed path earns reward (a potential; a loop through the unsafe

@@ -1,6 +1,6 @@
 """How much of a surgery command the drill arm realises in one control step, for the
-reference's per-step action box and the ``cpu`` training preset's. The figures in docs/envs.md
-("Action box of the cpu training preset") come from
+reference's per-step action box and the ``cpu`` training preset's. The figures in
+benchmarks/README.md ("Surgery action box: what the drill arm realises in one step") come from
 
     python benchmarks/surgery_action_box.py [spacing_m=0.001] [seed=0]
 

@@ -1,6 +1,7 @@
 """Returns of simple policies on the surgery task (state observations): the expert, standing
 still, unit-noise actions, backing out of or leaving the corridor, pushing along the drill
-axis. The table in docs/envs.md ("Deviation from the paper's 0 otherwise") comes from
+axis. The table in benchmarks/README.md ("Surgery reward: returns of simple policies") comes
+from
 
     python benchmarks/surgery_policy_returns.py [spacing_m=0.001] [seed=0] [w5_per_rad=5] [k=0]
 

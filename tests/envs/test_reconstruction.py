@@ -338,12 +338,13 @@ def test_bad_options_raise():
 
 def test_demo_runs_the_heuristic_and_draws_the_reconstruction():
     from sonogym.envs.registry import get_task
+    from sonogym.tasks.demo import task_demo
 
     task = get_task("reconstruction")
     env = _env(2, missing_rate=0.0)
     _, info = env.reset(seed=0)
     for _ in range(3):
         obs, _, _, _, info = env.step(task.expert(env, info))
-    img = task.demo.image(obs)
+    img = task_demo("reconstruction").image(obs)
     assert img.shape == (200, 200) and 0 < float(img.max()) <= 1.0
     assert env.render().shape == (200, 200, 3)

@@ -164,11 +164,11 @@ def test_a_mode_other_than_the_datasets_is_refused_before_anything_is_written(tm
 
 
 def test_recipes_are_the_papers_settings():
-    nav = get_task("navigation").dataset
+    nav = rec.dataset_spec("navigation")
     assert [(p.name, p.episodes) for p in nav.recipes] == [
         ("mb", 2052), ("lb", 1869), ("lb-4-nets", 954)
     ]  # fmt: skip
-    sur = get_task("surgery").dataset
+    sur = rec.dataset_spec("surgery")
     assert [(p.name, p.episodes) for p in sur.recipes] == [
         ("mb", 3536), ("mb-5-patients", 1476), ("lb", 2052), ("lb-4-nets", 2692)
     ]  # fmt: skip

@@ -241,15 +241,16 @@ def test_run_replay_places_the_probe_and_drill_along_the_saved_track(tmp_path):
 
 
 def test_dataset_replay_shows_the_saved_images_state_and_actions(tmp_path):
-    from sonogym.imitation.record import info_features
+    from sonogym.imitation.record import dataset_spec, info_features
     from sonogym.imitation.writer import DatasetWriter
 
     torch.set_num_threads(1)
     spec = get_task("surgery")
     env = make_vec("surgery", 1, **SMALL)
-    frames = {f.key: [] for f in spec.dataset.features} | {"action": []}
+    features = dataset_spec("surgery").features
+    frames = {f.key: [] for f in features} | {"action": []}
     for step in rollout(env, ExpertPolicy(env, spec.expert), 9, seed=1):
-        for f in spec.dataset.features:
+        for f in features:
             frames[f.key].append(f.fn(step.obs, step.info)[0].numpy())
         frames["action"].append(step.action[0].numpy())
     frames = {k: np.stack(v) for k, v in frames.items()}

@@ -13,7 +13,6 @@ These are plain dataclasses: no RL library is imported here.
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from functools import cache
 from typing import Any
@@ -106,15 +105,7 @@ def training_defaults(task: str) -> TrainingDefaults:
     """The ``TrainingDefaults`` of ``task`` (or of its Gymnasium id), from the module its
     ``TaskSpec.agents`` names; an unknown task names the known ones."""
     from sonogym.envs.registry import get_task
+    from sonogym.envs.spec import load_entry_point
 
     spec = get_task(task)
-    module, _, attr = spec.agents.partition(":")
-    if not module or not attr:
-        raise ValueError(
-            f"task {spec.name!r} names no agents config (TaskSpec.agents {spec.agents!r}); "
-            "give it as 'package.module:ATTRIBUTE'"
-        )
-    defaults = getattr(importlib.import_module(module), attr, None)
-    if not isinstance(defaults, TrainingDefaults):
-        raise TypeError(f"{spec.agents} (task {spec.name!r}) is not a TrainingDefaults")
-    return defaults
+    return load_entry_point(spec.agents, TrainingDefaults, spec.name, "agents")

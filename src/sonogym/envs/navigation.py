@@ -82,16 +82,11 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
-    DatasetRecipe,
-    DatasetSpec,
-    Demo,
     EnvMemory,
-    Feature,
     Metric,
     TaskSpec,
     Track,
@@ -426,27 +421,8 @@ SPEC = TaskSpec(
         Metric("level_miss", "level missed", "%", scale=100.0),
     ),
     track=Track(("x", "z", "yaw"), ("mm", "mm", "deg"), probe_track, plane=("x", "z")),
-    demo=Demo(image=frames.first_image, frame=frames.probe_frame, point=frames.probe_position),
+    demo="sonogym.tasks.navigation.demo:DEMO",  # how sonogym demo shows it
     agents="sonogym.tasks.navigation.agents:TRAINING",  # its RL defaults
     memory=EnvMemory(per_env=0.88e6, per_patient=46e6, load_peak=166e6),  # measured, bytes
-    dataset=DatasetSpec(
-        features=(
-            Feature(
-                "observation.images.us",
-                "image",
-                (1, 200, 150),
-                ("channels", "height", "width"),
-                lambda obs, info: obs,
-            ),
-        ),
-        instruction="Navigate the ultrasound probe to the transverse view above L4.",
-        robot_type="kuka_med14",
-        fps=60,  # the reference's control rate
-        recipes=(  # the paper's appendix Table "Number of episodes for expert datasets"
-            DatasetRecipe("mb", 2052, {"simulator": "physical", "patients": (0,)}),
-            DatasetRecipe("lb", 1869, {"simulator": "learned", "learned_nets": (0,)}),
-            DatasetRecipe("lb-4-nets", 954, {"simulator": "learned", "learned_nets": (0, 1, 2, 3)}),
-        ),
-        success=lambda m: (m["position_error_mm"] < 5.0) & (m["angle_error_deg"] < 5.0),
-    ),
+    dataset="sonogym.tasks.navigation.dataset:DATASET",  # its expert datasets
 )

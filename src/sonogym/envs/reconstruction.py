@@ -91,12 +91,10 @@ from gymnasium import spaces
 
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
-from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv
 from sonogym.envs.probe_scene import ProbeScene, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
-    Demo,
     EnvMemory,
     Metric,
     TaskSpec,
@@ -604,9 +602,7 @@ SPEC = TaskSpec(
     track=Track(
         ("x", "z", "yaw", "tilt"), ("mm", "mm", "deg", "deg"), probe_track, plane=("x", "z")
     ),
-    demo=Demo(
-        image=frames.reconstruction_image, frame=frames.probe_frame, point=frames.probe_position
-    ),
+    demo="sonogym.tasks.reconstruction.demo:DEMO",  # how sonogym demo shows it
     agents="sonogym.tasks.reconstruction.agents:TRAINING",  # its RL defaults
     memory=EnvMemory(per_env=2.24e6, per_patient=202e6, load_peak=269e6),  # measured, bytes
 )

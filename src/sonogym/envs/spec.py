@@ -5,12 +5,13 @@ Each task module (``navigation``, ``reconstruction``, ``surgery``) ends with its
 task (training, evaluation, the demo, dataset recording, reports) reads it from the spec, so a
 new task is one new module plus one registry entry.
 
-The spec is plain data and small functions over the env's public API (no RL, plotting or CLI
-library): metrics with units and better-direction, the trajectory evaluation logs, the demo's
-frames, the observation -> LeRobot feature mapping for imitation learning, and the env's
-measured memory. The task's RL settings (one config per algorithm, exploration, network
-trunks) live beside it in ``sonogym.tasks.<task>.agents``, which ``TaskSpec.agents`` names by
-entry point: the env package imports nothing from there.
+The spec holds the env's facts as plain data and small functions over the env's public API
+(no RL, plotting or CLI library): metrics with units and better-direction, the trajectory
+evaluation logs, the expert, the versions and the env's measured memory. What the tools make of
+a task lives beside it in ``sonogym.tasks.<task>``, named by entry point (``"module:ATTRIBUTE"``,
+loaded by its reader with ``load_entry_point``): its RL settings (``TaskSpec.agents``), its
+expert datasets for imitation learning (``TaskSpec.dataset``) and how ``sonogym demo`` shows
+it (``TaskSpec.demo``). The env package imports nothing from there.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import numpy as np
 import torch
 
 ExpertFn = Callable[[Any, dict[str, Any]], torch.Tensor]
@@ -55,67 +55,6 @@ class Track:
 
 
 @dataclass(frozen=True)
-class Feature:
-    """One LeRobot dataset feature taken from the env: ``fn(obs, info)`` -> (N, *shape).
-
-    ``dtype`` "image" (``shape`` (C, H, W) as the env gives it, float in [0, 1]; datasets store
-    LeRobot's (H, W, C)) or "float32"; ``names`` per LeRobot's ``info.json``."""
-
-    key: str
-    dtype: Literal["image", "float32"]
-    shape: tuple[int, ...]
-    names: tuple[str, ...] | None
-    fn: Callable[[Any, dict[str, Any]], torch.Tensor]
-
-
-@dataclass(frozen=True)
-class DatasetRecipe:
-    """How one of the paper's expert datasets is recorded: its name (``sonogym record
-    --recipe``), default episode count and the env options it records with (simulator, nets,
-    patients, start randomisation)."""
-
-    name: str
-    episodes: int
-    env_kwargs: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class DatasetSpec:
-    """How a task's expert datasets look (LeRobotDataset v3.0, ``sonogym.imitation``).
-
-    ``features`` map the env's observation to dataset keys (the action is added as
-    ``action``); ``instruction`` is LeRobot's task string; ``fps`` the control rate the
-    timestamps count (steps per second); ``success(metrics)`` -> (N,) bool keeps the expert
-    episodes worth imitating (a failed one is counted, not written)."""
-
-    features: tuple[Feature, ...]
-    instruction: str
-    robot_type: str
-    fps: int
-    recipes: tuple[DatasetRecipe, ...]
-    success: Callable[[dict[str, torch.Tensor]], torch.Tensor]
-
-    def recipe(self, name: str) -> DatasetRecipe:
-        for r in self.recipes:
-            if r.name == name:
-                return r
-        raise ValueError(
-            f"unknown dataset recipe {name!r}; choose from {[r.name for r in self.recipes]}"
-        )
-
-
-@dataclass(frozen=True)
-class Demo:
-    """How ``sonogym demo`` shows a task: ``image(obs)`` env 0's 2-D image in [0, 1] for the
-    frame sheet; ``frame(env, image, path)`` one RGB video frame (uint8 H x W x 3, sides
-    multiples of 16), ``path`` the tracked points so far (``Track`` columns, metres / rad)."""
-
-    image: Callable[[Any], torch.Tensor]
-    frame: Callable[[Any, torch.Tensor, np.ndarray], np.ndarray]
-    point: Callable[[Any, dict[str, Any]], np.ndarray]  # env 0's point drawn on the path
-
-
-@dataclass(frozen=True)
 class EnvMemory:
     """A task env's resident memory, measured on the CPU as the RSS growth of a fresh process
     that builds the env with its default options and steps it with the expert
@@ -135,8 +74,9 @@ class TaskSpec:
     ``expert(env, info)`` is the privileged expert (navigation, surgery) or heuristic
     (reconstruction), named by ``expert_label``; ``experts`` names further privileged
     experts, each a factory ``make(env)`` of a ``Policy`` (per-env state allowed), that a DAgger
-    warm start may imitate (``sonogym.agents.dagger``); ``dataset`` is None for a task without
-    expert datasets for imitation learning."""
+    warm start may imitate (``sonogym.agents.dagger``). ``agents``, ``demo`` and ``dataset``
+    name the task's tool settings by entry point (module docstring); ``dataset`` is None for a
+    task without expert datasets for imitation learning."""
 
     name: str
     env_id: str
@@ -147,12 +87,17 @@ class TaskSpec:
     expert_label: Literal["expert", "heuristic"]
     metrics: tuple[Metric, ...]
     track: Track
-    demo: Demo
+    #: how ``sonogym demo`` shows the task, "module:ATTRIBUTE" of a ``Demo``
+    #: (``sonogym.tasks.demo``), loaded by ``sonogym.evaluation.demo``, never here
+    demo: str
     #: the task's RL defaults, "module:ATTRIBUTE" of a ``TrainingDefaults``
     #: (``sonogym.agents.task_defaults``), loaded by the agents package, never here
     agents: str
     memory: EnvMemory  # what ``sonogym.envs.footprint`` estimates a run's memory from
-    dataset: DatasetSpec | None = None
+    #: the task's expert datasets, "module:ATTRIBUTE" of a ``DatasetSpec``
+    #: (``sonogym.imitation.task_datasets``), loaded by the imitation package, never here;
+    #: None: the task has none
+    dataset: str | None = None
     # per obs_mode, the version of what the observation means (absent: 1); bumped when it
     # changes, so a policy trained on an older one is refused instead of silently misread
     obs_versions: dict[str, int] = field(default_factory=dict)
@@ -195,3 +140,21 @@ class TaskSpec:
     @property
     def metric_keys(self) -> tuple[str, ...]:
         return tuple(m.key for m in self.metrics)
+
+
+def load_entry_point(ref: str, cls: type, task: str, field_name: str) -> Any:
+    """The object ``ref`` ("package.module:ATTRIBUTE", task ``task``'s ``TaskSpec.<field_name>``)
+    names, which must be a ``cls``: a malformed reference is a ``ValueError``, an object of
+    another type a ``TypeError``, each naming the task and the field."""
+    import importlib
+
+    module, _, attr = ref.partition(":")
+    if not module or not attr:
+        raise ValueError(
+            f"task {task!r} names no {field_name} config (TaskSpec.{field_name} {ref!r}); "
+            "give it as 'package.module:ATTRIBUTE'"
+        )
+    obj = getattr(importlib.import_module(module), attr, None)
+    if not isinstance(obj, cls):
+        raise TypeError(f"{ref} (task {task!r}) is not a {cls.__name__}")
+    return obj

@@ -60,8 +60,8 @@ reference avoided the trap with dense shaping everywhere. Here the unsafe region
 C_free formula's shaping toward p_l (the reference's dense term), so leaving the corridor
 gives back everything the insertion earned, and each unsafe step costs ``unsafe_penalty``
 (0.3) more: enough that pushing through the target does not pay, small enough that crossing
-the corridor's entrance is worth the risk (docs/envs.md, "Deviation from the paper's 0
-otherwise", gives the measured returns).
+the corridor's entrance is worth the risk (benchmarks/README.md, "Surgery reward: returns of
+simple policies", gives the measured returns).
 Being paid for the current state (not the deepest point reached, as a guard on the paper's
 formula did before) means backing out of the corridor gives back what going in earned.
 Consequences, tested: no closed path earns reward (a potential; a loop through the unsafe
@@ -121,11 +121,7 @@ from sonogym.envs import frames
 from sonogym.envs.base import SingleEnv
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
-    DatasetRecipe,
-    DatasetSpec,
-    Demo,
     EnvMemory,
-    Feature,
     Metric,
     TaskSpec,
     Track,
@@ -587,22 +583,6 @@ def drill_track(env, info) -> torch.Tensor:
     return info["state"][:, :3] * 1e3
 
 
-_DATA_COLLECTION_STARTS = {
-    "joint_noise": DATA_COLLECTION_JOINT_NOISE,
-    "require_free_start": False,
-}
-
-
-def _slice_feature(i: int) -> Feature:
-    return Feature(
-        f"observation.images.slice_{i}",
-        "image",
-        (1, 50, 37),
-        ("channels", "height", "width"),
-        lambda obs, info: obs["image"][:, i : i + 1],
-    )
-
-
 SPEC = TaskSpec(
     name="surgery",
     env_id="SonoGym/Surgery-v0",
@@ -618,35 +598,10 @@ SPEC = TaskSpec(
         Metric("safe_ratio", "safe ratio", "%", 100.0, better="higher"),
     ),
     track=Track(("x", "y", "z"), ("mm", "mm", "mm"), drill_track, plane=("x", "z"), axis_line=True),
-    demo=Demo(image=frames.surgery_image, frame=frames.surgery_demo_frame, point=frames.drill_tip),
+    demo="sonogym.tasks.surgery.demo:DEMO",  # how sonogym demo shows it
     # "state" 2: position + x_D, z_D in {G} (state_observation); 1: position + rotation vector
     obs_versions={"state": 2},
     agents="sonogym.tasks.surgery.agents:TRAINING",  # its RL defaults
     memory=EnvMemory(per_env=0.81e6, per_patient=196e6, load_peak=23e6),  # measured, bytes
-    dataset=DatasetSpec(
-        features=(
-            *(_slice_feature(i) for i in range(5)),
-            Feature(
-                "observation.state",
-                "float32",
-                (7,),
-                ("x", "y", "z", "qw", "qx", "qy", "qz"),
-                lambda obs, info: obs["pose"],
-            ),
-        ),
-        instruction="perform spine surgery based on ultrasound volume.",  # the reference's
-        robot_type="kuka_med14+franka_fr3",
-        fps=60,  # the reference's control rate
-        # the paper's appendix: wider initial joints, starts that may be unsafe
-        recipes=tuple(
-            DatasetRecipe(name, n, {**kw, **_DATA_COLLECTION_STARTS})
-            for name, n, kw in (
-                ("mb", 3536, {"simulator": "physical", "patients": (0,)}),
-                ("mb-5-patients", 1476, {"simulator": "physical", "patients": (0, 1, 2, 3, 4)}),
-                ("lb", 2052, {"simulator": "learned", "learned_nets": (0,)}),
-                ("lb-4-nets", 2692, {"simulator": "learned", "learned_nets": (0, 1, 2, 3)}),
-            )
-        ),
-        success=lambda m: (m["insertion_error_mm"] < 2.0) & (m["side_error_mm"] < 1.0),
-    ),
+    dataset="sonogym.tasks.surgery.dataset:DATASET",  # its expert datasets
 )

@@ -22,6 +22,7 @@ from sonogym.envs.registry import get_task, make_vec, task_names
 from sonogym.envs.rollout import rollout
 from sonogym.evaluation.trained import load_run, run_policy
 from sonogym.runs import atomic_write_text
+from sonogym.tasks.demo import task_demo
 
 
 def run_demo(
@@ -59,7 +60,7 @@ def run_demo(
                          policy))  # fmt: skip
         for key, label, e, policy in runs:
             t0 = time.perf_counter()
-            final, sheet, frames = _episode(e, policy, task, seed, name)
+            final, sheet, frames = _episode(e, policy, seed, name)
             metrics = {k: _mean_std(final[k]) for k in (*task.metric_keys, "return")}
             results[key] = {"controller": label, "envs": num_envs,
                             "seconds": time.perf_counter() - t0, "metrics": metrics}  # fmt: skip
@@ -73,18 +74,19 @@ def run_demo(
     return results
 
 
-def _episode(env, policy, task, seed: int, name: str):
+def _episode(env, policy, seed: int, name: str):
     """One episode of every env: (final metrics, frame sheet, video frames of env 0)."""
+    demo = task_demo(name)
     frames, paths, sheet = [], [], []
     final = None
     for step in rollout(env, policy, env.episode_length, seed=seed):
         if step.final_info is not None:
             final = step.final_info
-            img = task.demo.image(step.final_obs)
+            img = demo.image(step.final_obs)
         else:
-            img = task.demo.image(step.next_obs)
-        paths.append(task.demo.point(env, step.next_info) if final is None else paths[-1])
-        frames.append(task.demo.frame(env, img, np.array(paths)))
+            img = demo.image(step.next_obs)
+        paths.append(demo.point(env, step.next_info) if final is None else paths[-1])
+        frames.append(demo.frame(env, img, np.array(paths)))
         t = step.t
         if t % max(1, env.episode_length // 8) == 0 or final is not None:
             sheet.append((t + 1, img.cpu().numpy()))

@@ -31,9 +31,9 @@ from sonogym.envs.identity import identity, stamp
 from sonogym.envs.policy import ExpertPolicy
 from sonogym.envs.registry import get_task, make_vec
 from sonogym.envs.rollout import rollout
-from sonogym.envs.spec import DatasetSpec
 from sonogym.imitation.lerobot_format import encode_png
 from sonogym.imitation.processor import PolicyFeatures
+from sonogym.imitation.task_datasets import dataset_spec
 from sonogym.imitation.writer import DatasetWriter
 from sonogym.progress import progress_bar
 from sonogym.runs import (
@@ -60,13 +60,6 @@ class RecordResult:
     failed: int  # expert episodes not written (not successful), in all batches so far
     frames: int
     seconds: float  # this call's wall time
-
-
-def dataset_spec(task: str) -> DatasetSpec:
-    spec = get_task(task).dataset
-    if spec is None:
-        raise ValueError(f"{task} has no expert datasets (tasks with one: navigation, surgery)")
-    return spec
 
 
 def info_features(task: str, action_dim: int) -> dict[str, dict[str, Any]]:
@@ -134,9 +127,9 @@ def record(
 ) -> RecordResult:
     """Record ``episodes`` expert episodes of ``task`` into ``out`` (see the module doc).
 
-    ``recipe``: one of the task's dataset recipes (``DatasetSpec.recipes``: its env options
-    and, unless ``episodes`` is given, its episode count); ``env_kwargs`` add to / override
-    them."""
+    ``recipe``: one of the task's dataset recipes (``DatasetSpec.recipes`` in
+    ``sonogym.tasks.<task>.dataset``: its env options and, unless ``episodes`` is given, its
+    episode count); ``env_kwargs`` add to / override them."""
     dataset_spec(task)  # refuses a task without datasets
     default_mode = get_task(task).default_obs_mode
     if (env_kwargs or {}).get("obs_mode", default_mode) != default_mode:

@@ -35,9 +35,11 @@ images).
 
 from __future__ import annotations
 
+import copy
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -148,6 +150,21 @@ class Slices:
 
 
 _TENSOR_FIELDS = ("ct", "labels", "origin", "row_step", "col_step", "seed", "patient_index")
+
+
+class DepthWarp(Protocol):
+    """Moves a slicer's samples along their beams (``Slicer.__call__(warp=)``; the tissue
+    compression of ``sonogym.ultrasound.compression`` is one).
+
+    Called once per chunk of envs with the labels sampled on the undeformed grid, (n, E, Wc,
+    Hc) uint8 (depth last; ``Slicer.block`` pixels per sample), the chunk's env slice and the
+    chunk's scratch ``Workspace``; returns how many samples deeper to sample each one, (n, E,
+    Wc, Hc) float32 >= 0, at most ``max_rows`` (the crop check's reach), or None: nothing
+    moves. A shift of exactly 0 samples the same point, bit for bit."""
+
+    max_rows: int
+
+    def __call__(self, labels: torch.Tensor, envs: slice, ws: Workspace) -> torch.Tensor | None: ...
 
 
 def speckle_seed(patient: Patient) -> int:
@@ -455,15 +472,26 @@ class Slicer:
         self._lim = torch.tensor(np.array(lims), dtype=torch.float64, device=dev)  # (P, 2, 3)
         self.cropped = bool(np.isfinite(np.array(lims)).any())
         self._chunks = ChunkRunner(dev)  # scratch buffers, one set per worker thread
-        min_spacing = min(float(s.min()) for s in sps)
-        pr = self.probe
-        if self.upsample:
-            self.block = (
-                max(1, int(min_spacing / pr.depth_spacing + 1e-6)),
-                max(1, int(min_spacing / pr.width_spacing + 1e-6)),
-            )
-        else:
-            self.block = (1, 1)
+        self._min_spacing = min(float(s.min()) for s in sps)
+        self.block = self._block_for(self.probe)
+
+    def _block_for(self, probe: ProbeGeometry) -> tuple[int, int]:
+        """(kz, kx) pixels per sample of ``probe``'s grid (module docstring)."""
+        if not self.upsample:
+            return (1, 1)
+        return (
+            max(1, int(self._min_spacing / probe.depth_spacing + 1e-6)),
+            max(1, int(self._min_spacing / probe.width_spacing + 1e-6)),
+        )
+
+    def sharing(self, probe: ProbeGeometry, block: tuple[int, int] | None = None) -> Slicer:
+        """A slicer of another pixel grid over this one's volumes (shared, not copied), with
+        ``block`` pixels per sample (None: as this slicer would choose)."""
+        other = copy.copy(self)
+        other.probe = probe
+        other.block = tuple(block) if block is not None else self._block_for(probe)
+        other._chunks = ChunkRunner(self.device)
+        return other
 
     @property
     def num_patients(self) -> int:
@@ -487,11 +515,12 @@ class Slicer:
         """Round-robin assignment of n envs to the patients (env i -> patient i % P)."""
         return torch.arange(n, device=self.device) % self.num_patients
 
-    def _check_in_crop(self, origin, row_step, col_step, pidx) -> None:
-        """Every image plane's corners inside its patient's crop box (on the cut sides): the
-        images are convex, so then every pixel is."""
+    def _check_in_crop(self, origin, row_step, col_step, pidx, extra_rows: int = 0) -> None:
+        """Every image plane's corners, the bottom ones ``extra_rows`` deeper (a warp's reach),
+        inside its patient's crop box (on the cut sides): the images are convex, so then every
+        pixel is."""
         pr = self.probe
-        down = (pr.depth_px - 1) * row_step[:, None, None, :]  # (N, 1, 1, 3)
+        down = (pr.depth_px - 1 + extra_rows) * row_step[:, None, None, :]  # (N, 1, 1, 3)
         across = (pr.width_px - 1) * col_step[:, None, None, :]
         o = origin[:, :, None, :]  # (N, E, 1, 3)
         corners = torch.cat([o, o + down, o + across, o + down + across], 2)  # (N, E, 4, 3)
@@ -526,6 +555,7 @@ class Slicer:
         rot: torch.Tensor,
         patient_index: torch.Tensor | None = None,
         out: Slices | None = None,
+        warp: DepthWarp | None = None,
     ) -> Slices:
         """Slice N probe poses.
 
@@ -535,6 +565,9 @@ class Slicer:
             patient_index: (N,) int, which patient each env images (default round-robin).
             out: a previous result whose ct and labels tensors are overwritten (saves
                 allocating them on every call).
+            warp: sample deeper along each beam (``DepthWarp``: tissue compressed under the
+                probe, ``sonogym.ultrasound.compression``); None samples the image planes as
+                they are (the same code as without it).
 
         Returns:
             ``Slices`` with ct (N, E, H, W) float32 HU and labels (N, E, H, W) uint8.
@@ -559,18 +592,95 @@ class Slicer:
             ct = torch.empty(shape, dtype=torch.float32, device=self.device)
             lab = torch.empty(shape, dtype=torch.uint8, device=self.device)
         origin, row_step, col_step = self._geometry(pos, rot)
-        if self.cropped:
-            self._check_in_crop(origin, row_step, col_step, pidx)
         kz, kx = self.block
+        if self.cropped:
+            extra = 0 if warp is None else warp.max_rows * kz
+            self._check_in_crop(origin, row_step, col_step, pidx, extra)
         per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
         step = max(1, self.chunk_samples // per_env)
 
         def run(c: slice, ws: Workspace) -> None:
-            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws)
+            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws, warp, c)
 
         # chunks of envs: bounded scratch, cache-sized on CPU
         self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
         return Slices(ct, lab, origin, row_step, col_step, self._seeds[pidx], pidx, pr)
+
+    def _corners(self, a, b, shift, dvr, pidx, ws: Workspace):
+        """Voxel indices of the samples at a + b (+ shift rows along the beam): the flat index
+        of each sample's lower corner (``idx``, int32), the offset of its nearest corner
+        (``near``, float32) and the fractions toward the upper corners per axis, all in ``ws``.
+        Returns (idx, an int32 scratch, (fx, fy, fz))."""
+        n, e, wc = a.shape[:3]
+        shape = (n, e, wc, b.shape[1])
+        dmax = self._dmax[pidx]  # (N, 3)
+        strides = self._strides[pidx]  # (N, 3) int32
+        idx = ws.get("idx", shape, torch.int32)
+        idx.copy_(self._offsets[pidx].view(n, 1, 1, 1).expand(shape))
+        tmp_i = ws.get("tmp_i", shape, torch.int32)
+        near = ws.get("near", shape, torch.float32)  # offset of the nearest corner
+        near.zero_()
+        fr = []
+        for c in range(3):
+            v = ws.get(f"v{c}", shape, torch.float32)
+            i0 = ws.get("i0", shape, torch.float32)
+            torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
+            if shift is not None:  # x + 0 * step = x: an unmoved sample keeps its bits
+                v.addcmul_(shift, dvr[:, c].float().view(n, 1, 1, 1))
+            torch.floor(v, out=i0)
+            i0.clamp_(min=0)
+            torch.minimum(i0, dmax[:, c].view(n, 1, 1, 1), out=i0)
+            f = v.sub_(i0).clamp_(0, 1)  # fraction, in place of v
+            fr.append(f)
+            tmp_i.copy_(i0)
+            if c != 1:
+                tmp_i.mul_(strides[:, c].view(n, 1, 1, 1))
+            idx.add_(tmp_i)
+            # nearest corner: + stride where the fraction >= 0.5
+            torch.round(f, out=i0)
+            near.add_(i0.mul_(strides[:, c].view(n, 1, 1, 1).float()))
+        return idx, tmp_i, tuple(fr)
+
+    def _nearest_voxels(self, a, b, pidx, ws: Workspace) -> torch.Tensor:
+        """Flat indices (int32, in ``ws``) of the voxels nearest to the samples at a + b: the
+        labels a warp reads (half-way ties may round the other way than ``_corners``')."""
+        n, e, wc = a.shape[:3]
+        shape = (n, e, wc, b.shape[1])
+        top = self._dmax[pidx] + 1  # (N, 3) the last voxel, the border's
+        strides = self._strides[pidx]
+        idx = ws.get("nearest", shape, torch.int32)
+        idx.copy_(self._offsets[pidx].view(n, 1, 1, 1).expand(shape))
+        v = ws.get("v0", shape, torch.float32)
+        tmp_i = ws.get("tmp_i", shape, torch.int32)
+        for c in range(3):
+            torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
+            v.round_().clamp_(min=0)
+            torch.minimum(v, top[:, c].view(n, 1, 1, 1), out=v)
+            tmp_i.copy_(v)
+            if c != 1:
+                tmp_i.mul_(strides[:, c].view(n, 1, 1, 1))
+            idx.add_(tmp_i)
+        return idx
+
+    def _nearest_labels(self, ws: Workspace, lab_c: torch.Tensor) -> None:
+        """The labels of the nearest voxels of the samples ``_corners`` just indexed."""
+        shape = lab_c.shape
+        tmp_i = ws.get("tmp_i", shape, torch.int32)
+        tmp_i.copy_(ws.get("near", shape, torch.float32)).add_(ws.get("idx", shape, torch.int32))
+        self._labels_at(tmp_i, ws, lab_c)
+
+    def _labels_at(self, voxels: torch.Tensor, ws: Workspace, lab_c: torch.Tensor) -> None:
+        """Label ids of flat voxel indices ``voxels`` (int32; overwritten) into ``lab_c``."""
+        shape, tmp_i = lab_c.shape, voxels
+        if self.labels_packed:
+            scratch = (
+                ws.get("lab_i0", shape, torch.int32),
+                ws.get("lab_i1", shape, torch.int32),
+                ws.get("lab_u8", shape, torch.uint8),
+            )
+            gather_labels(self._nibbles, self._palette, tmp_i, lab_c, scratch)
+        else:
+            torch.index_select(self._lab, 0, tmp_i.view(-1), out=lab_c.view(-1))
 
     def _sample(
         self,
@@ -581,6 +691,8 @@ class Slicer:
         ct_out: torch.Tensor,
         lab_out: torch.Tensor,
         ws: Workspace,
+        warp: DepthWarp | None = None,
+        envs: slice = slice(None),
     ) -> None:
         n, e, h, w = ct_out.shape
         kz, kx = self.block
@@ -603,45 +715,17 @@ class Slicer:
         a = (v0[:, :, None, :] + l_[None, None, :, None] * dvc[:, None, None, :]).float()
         b = (m[None, :, None] * dvr[:, None, :]).float()  # (N, Hc, 3)
         shape = (n, e, wc, hc)
-        dmax = self._dmax[pidx]  # (N, 3)
-        strides = self._strides[pidx]  # (N, 3) int32
-        idx = ws.get("idx", shape, torch.int32)
-        idx.copy_(self._offsets[pidx].view(n, 1, 1, 1).expand(shape))
-        tmp_i = ws.get("tmp_i", shape, torch.int32)
-        near = ws.get("near", shape, torch.float32)  # offset of the nearest corner
-        near.zero_()
-        fr = []
-        for c in range(3):
-            v = ws.get(f"v{c}", shape, torch.float32)
-            i0 = ws.get("i0", shape, torch.float32)
-            torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
-            torch.floor(v, out=i0)
-            i0.clamp_(min=0)
-            torch.minimum(i0, dmax[:, c].view(n, 1, 1, 1), out=i0)
-            f = v.sub_(i0).clamp_(0, 1)  # fraction, in place of v
-            fr.append(f)
-            tmp_i.copy_(i0)
-            if c != 1:
-                tmp_i.mul_(strides[:, c].view(n, 1, 1, 1))
-            idx.add_(tmp_i)
-            # nearest corner: + stride where the fraction >= 0.5
-            torch.round(f, out=i0)
-            near.add_(i0.mul_(strides[:, c].view(n, 1, 1, 1).float()))
-        fx, fy, fz = fr
-        # Labels: nearest voxel.
-        tmp_i.copy_(near).add_(idx)
         lab_c = ws.get("lab_c", shape, torch.uint8)
-        if self.labels_packed:
-            scratch = (
-                ws.get("lab_i0", shape, torch.int32),
-                ws.get("lab_i1", shape, torch.int32),
-                ws.get("lab_u8", shape, torch.uint8),
-            )
-            gather_labels(self._nibbles, self._palette, tmp_i, lab_c, scratch)
-        else:
-            torch.index_select(self._lab, 0, tmp_i.view(-1), out=lab_c.view(-1))
+        shift = None
+        if warp is not None:  # the undeformed labels say how far each sample moves
+            self._labels_at(self._nearest_voxels(a, b, pidx, ws), ws, lab_c)
+            shift = warp(lab_c, envs, ws)
+        idx, tmp_i, (fx, fy, fz) = self._corners(a, b, shift, dvr, pidx, ws)
+        # Labels: nearest voxel.
+        self._nearest_labels(ws, lab_c)
         # CT: trilinear from the 8 corners (pairs along the contiguous y axis).
         vol = self._ct
+        strides = self._strides[pidx]  # (N, 3) int32
         g16 = ws.get("g16", shape, torch.float16)
         lo = ws.get("lo", shape, torch.float32)
         hi = ws.get("hi", shape, torch.float32)

@@ -92,7 +92,7 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs.base import SingleEnv
-from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.probe_scene import ProbeScene, hold_force, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     EnvMemory,
@@ -134,6 +134,9 @@ class ReconstructionConfig(SceneConfig):
     voxel_size: float = 0.003  # m (paper)
     w2: float = 0.01  # objective weight per mm of path (paper)
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (docs/design.md)
+    #: a 5th action, the change of the probe's contact force (``contact_force``; 1 N per unit,
+    #: at most 2 N per step, kept in [0, 30] N): the tissue under the probe compresses
+    force_action: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -285,7 +288,8 @@ class ReconstructionEnv(TaskEnv):
             )
         else:
             obs_space = spaces.Box(-np.inf, np.inf, (6,), np.float32)
-        self._set_spaces(obs_space, spaces.Box(-bound, bound, (4,), np.float32))
+        n_act = 4 + cfg.force_action
+        self._set_spaces(obs_space, spaces.Box(-bound, bound, (n_act,), np.float32))
         # Per-env episode state.
         p = size + 2  # stored with a one-voxel empty border (cheap out-of-cube lookups)
         # one slot past the cubes: where points outside every cube are written (no masking)
@@ -345,6 +349,9 @@ class ReconstructionEnv(TaskEnv):
 
     def _apply_action(self, actions: torch.Tensor) -> None:
         cfg = self.cfg
+        if cfg.force_action:
+            self.scene.step_force(actions[:, 4])
+            actions = actions[:, :4]
         delta = (actions * self.action_scale).clamp(-self.action_limit, self.action_limit)
         m = self.tangent_map()
         dxz = (m @ delta[:, :2].unsqueeze(-1)).squeeze(-1)
@@ -472,7 +479,7 @@ class ReconstructionEnv(TaskEnv):
         }
 
     def _get_info(self) -> dict:
-        return {
+        info = {
             "state": self.state(),
             "command": self.command.clone(),
             "measured_command": torch.stack(self.scene.measured_command(), -1).float(),
@@ -483,7 +490,11 @@ class ReconstructionEnv(TaskEnv):
             "sensed_points": self.sensed_points.clone(),
             "reachable": self.scene.reachable.clone(),
             "cost": torch.zeros(self.num_envs, device=self.device),
+            **self.scene.tissue_info(),
         }
+        if "force_cost" in info:  # the task's one safety constraint: the force limit
+            info["cost"] = info["force_cost"].clone()
+        return info
 
     def _episode_metrics(self, env_ids: torch.Tensor) -> dict[str, torch.Tensor]:
         return {
@@ -578,7 +589,7 @@ def heuristic_raster(env: ReconstructionEnv, info: dict | None = None, **kwargs)
         -1,
     )
     scale = torch.tensor(cfg.action_scale, dtype=err.dtype, device=env.device)
-    return (err / scale).clamp(-env.action_bound, env.action_bound)
+    return hold_force(env, (err / scale).clamp(-env.action_bound, env.action_bound))
 
 
 def make_single(**kwargs) -> SingleEnv:

@@ -536,6 +536,7 @@ class SurgeryEnv(TaskEnv):
             "safe": self._region != UNSAFE,
             "radius": self.scene.radius.clone(),
             "tracking_error": self._tracking_error.clone(),
+            **self.scene.tissue_info(),
         }
 
     def errors(self, env_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:

@@ -50,6 +50,10 @@ from sonogym.ultrasound._workspace import Workspace, exp2_
 from sonogym.ultrasound.probe import ProbeGeometry
 from sonogym.ultrasound.tissues import PHYSICAL_DEFAULT_TISSUE, PHYSICAL_LABEL_TISSUE
 
+#: Counts changes to the model (parameters, equations) that change images; results record it
+#: (``sonogym.envs.identity``).
+COMPRESSION_VERSION = 1
+
 #: N: the largest contact force the envs take (``contact_force``, the force action's range):
 #: the largest load Isogai et al. (2022) applied in vivo with an ultrasound probe. Clinical
 #: scanning typically stays well below it (our reading; we cite no survey of probe forces).

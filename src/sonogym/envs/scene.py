@@ -227,9 +227,8 @@ class PatientScene:
         pr = self.probe_geometry
         beam = ProbeGeometry(pr.depth_px, 1, 1, pr.depth_spacing, pr.width_spacing)
         slicer = self.slicer.sharing(beam, (self.slicer.block[0], 1))
-        model = TissueCompression(
-            beam, slicer.block, probe_footprint(pr), self.tissue.params, self.device
-        )
+        model = TissueCompression(beam, slicer.block, probe_footprint(pr), self.tissue.params,
+                                  self.device, (self.tissue.stride[0], 1))  # fmt: skip
         return slicer, model
 
     def centre_compression(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:

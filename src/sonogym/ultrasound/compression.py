@@ -9,19 +9,19 @@ per env and per image column (beam), batched:
 2. **Stress under the footprint.** The vertical stress at a point (x, y) across the face and z
    below it is p I(x, y, z), I the influence factor of a uniformly loaded rectangle on an
    elastic half-space (Boussinesq's solution integrated over a rectangle; Newmark 1935, Univ.
-   Illinois Eng. Exp. Station Circular 24): I = 1 at the face under the footprint, it falls
+   Illinois Eng. Exp. Station Circular 24). I = 1 at the face under the footprint; it falls
    with depth as the load spreads (under the centre of a 75 x 10 mm footprint: 0.55 at 10 mm,
    0.30 at 20 mm, 0.08 at 60 mm) and beyond the footprint's edges over a distance of the order
-   of the depth. This is how the
-   displacement decays beyond the edges: the volume probe's outer elevation slices and any
-   column outside the array see less stress, hence less compression.
+   of the depth (1/2 at an edge just under the face). This is how the displacement decays
+   beyond the footprint: the volume probe's outer elevation slices, at its face's edges, and
+   any column outside the array are pressed less.
 3. **Strain of each sample along the beam** (uniaxial, 1-D): eps = eps_max (1 - exp(-sigma /
    (E eps_max))), E the tissue's small-strain Young's modulus (``YOUNG_MODULUS``). At small
    stress eps = sigma / E (linear elasticity); the tangent modulus E / (1 - eps / eps_max)
-   grows as the tissue compresses, as measured in vivo under an ultrasound probe (Isogai et al.
-   2022: 8-80x stiffer at 30 N than at 1-5 N), and no sample compresses by more than
-   ``MAX_STRAIN`` = 0.5, so tissue never inverts. Bone, air, gel, fluid and lung do not
-   compress.
+   grows as the tissue compresses, as tissue stiffens under an ultrasound probe in vivo
+   (Isogai et al. 2022: subcutaneous tissue 26 kPa at 1 N, 2.2 MPa at 30 N; muscle 62 kPa at
+   5 N, 0.44 MPa at 30 N), and no sample compresses by more than ``MAX_STRAIN`` = 0.5, so
+   tissue never inverts. Bone, air, gel, fluid and lung do not compress.
 4. **Bone is rigid and fixed.** The first bone sample of a beam rests on deeper structures taken
    as fixed: the tissue between the face and it is squeezed against it. A beam without bone is
    squeezed against its deepest sample (the image's bottom), taken as fixed. In the probe's
@@ -35,8 +35,10 @@ per env and per image column (beam), batched:
 
 Limits: quasi-static (no viscoelastic creep or rate dependence), no friction or lateral sliding
 (points move along the beam only), no bulging of tissue beside the footprint, the flexible
-footprint's uniform pressure rather than a rigid face's, depth measured from the face, and one
-modulus per tissue class (no anisotropy, no muscle tone).
+footprint's uniform pressure rather than a rigid face's (a rigid face would load thin, stiff
+columns such as the one over a spinous process more), depth measured from the face, one
+modulus per tissue class (no anisotropy, no muscle tone), and speckle drawn at the image's
+pixels, so it does not follow the tissue as the force changes (the anatomy does).
 """
 
 from __future__ import annotations
@@ -101,6 +103,11 @@ YOUNG_MODULUS: dict[str, float] = {
     "nerve": 40e3,
     "brain": 40e3,
 }
+
+#: m: the compression is computed on samples about this far apart along and across the beam
+#: (``TissueCompression``'s default ``stride``) and interpolated to the image's: its layers are
+#: of millimetres to centimetres, and its cost falls with the square of the spacing.
+WARP_GRID = 2e-3
 
 #: Tissue classes a beam rests on: the first such sample and everything behind it stay fixed.
 SUPPORT_TISSUES = frozenset({"bone"})
@@ -253,16 +260,18 @@ def warp_shift(
 
 
 class TissueCompression:
-    """The compression model on one slicer's sampling grid (``Slicer.block`` samples of its
-    probe's pixels), for envs of one footprint.
+    """The compression model for one slicer's sampling grid (``Slicer.block`` pixels per
+    sample), computed on a grid ``stride`` times coarser, for envs of one footprint.
 
     Args:
         probe: the sampled pixel grid.
-        block: (kz, kx) pixels per sample (``Slicer.block``).
+        block: (kz, kx) pixels per slicer sample (``Slicer.block``).
         footprint: (lateral, elevation) size of the face, m (default ``probe_footprint(probe)``;
             give the imaging probe's when ``probe`` is a single beam of it).
         params: the tissue model.
         device: where the tables live.
+        stride: (sd, sl) slicer samples per model sample along and across the beam (default:
+            about ``WARP_GRID`` apart); (1, 1) computes it at every sample.
     """
 
     def __init__(
@@ -272,14 +281,22 @@ class TissueCompression:
         footprint: tuple[float, float] | None = None,
         params: CompressionParams | None = None,
         device: torch.device | str = "cpu",
+        stride: tuple[int, int] | None = None,
     ) -> None:
         self.probe, self.block = probe, tuple(block)
         self.footprint = footprint or probe_footprint(probe)
         self.params = params or CompressionParams()
         self.device = torch.device(device)
-        kz, kx = self.block
+        if stride is None:
+            stride = (
+                max(1, round(WARP_GRID / (block[0] * probe.depth_spacing))),
+                max(1, round(WARP_GRID / (block[1] * probe.width_spacing))),
+            )
+        #: (sd, sl): slicer samples per model sample (``DepthWarp.stride``)
+        self.stride = tuple(int(v) for v in stride)
+        kz, kx = self.block[0] * self.stride[0], self.block[1] * self.stride[1]
         hc, wc = -(-probe.depth_px // kz), -(-probe.width_px // kx)
-        #: m per sample along the beam
+        #: m per model sample along the beam
         self.row = kz * probe.depth_spacing
         # sample centres: block centres in {U} (the slicer's sampling points)
         x = torch.arange(wc, dtype=torch.float64) * kx + (kx - 1) / 2 - (probe.width_px - 1) / 2
@@ -342,8 +359,9 @@ class CompressionWarp:
         self.centre = torch.zeros_like(force)
         if max_force is None:
             max_force = float(force.max()) if force.numel() else 0.0
-        #: rows (of samples) any shift stays within (the slicer's crop check)
+        #: rows (of the model's samples) any shift stays within (the slicer's crop check)
         self.max_rows = model.max_rows(max_force)
+        self.stride = model.stride
 
     def __call__(self, labels: torch.Tensor, envs: slice, ws: Workspace) -> torch.Tensor | None:
         """labels (n, E, Wc, Hc) uint8 of envs ``envs`` (depth last) -> shift (n, E, Wc, Hc)

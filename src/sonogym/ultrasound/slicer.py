@@ -156,12 +156,15 @@ class DepthWarp(Protocol):
     """Moves a slicer's samples along their beams (``Slicer.__call__(warp=)``; the tissue
     compression of ``sonogym.ultrasound.compression`` is one).
 
-    Called once per chunk of envs with the labels sampled on the undeformed grid, (n, E, Wc,
-    Hc) uint8 (depth last; ``Slicer.block`` pixels per sample), the chunk's env slice and the
-    chunk's scratch ``Workspace``; returns how many samples deeper to sample each one, (n, E,
-    Wc, Hc) float32 >= 0, at most ``max_rows`` (the crop check's reach), or None: nothing
-    moves. A shift of exactly 0 samples the same point, bit for bit."""
+    It works on a grid ``stride`` = (sd, sl) times coarser than the slicer's samples (blocks of
+    ``Slicer.block`` times ``stride`` pixels, sampled at their centres). Called once per chunk
+    of envs with the labels of that grid, undeformed, (n, E, Wc', Hc') uint8 (depth last), the
+    chunk's env slice and the chunk's scratch ``Workspace``; returns how many of its rows
+    deeper each point shows, (n, E, Wc', Hc') float32 >= 0, at most ``max_rows`` (the crop
+    check's reach), or None: nothing moves. The slicer interpolates that to its samples
+    (linearly, as it upsamples CT). A shift of exactly 0 samples the same point, bit for bit."""
 
+    stride: tuple[int, int]
     max_rows: int
 
     def __call__(self, labels: torch.Tensor, envs: slice, ws: Workspace) -> torch.Tensor | None: ...
@@ -594,13 +597,15 @@ class Slicer:
         origin, row_step, col_step = self._geometry(pos, rot)
         kz, kx = self.block
         if self.cropped:
-            extra = 0 if warp is None else warp.max_rows * kz
+            extra = 0 if warp is None else warp.max_rows * warp.stride[0] * kz
             self._check_in_crop(origin, row_step, col_step, pidx, extra)
         per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
         step = max(1, self.chunk_samples // per_env)
+        moved = None if warp is None else self._warp(warp, origin, row_step, col_step, pidx)
 
         def run(c: slice, ws: Workspace) -> None:
-            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws, warp, c)
+            shift = None if moved is None else (moved[c], warp.stride)
+            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws, shift)
 
         # chunks of envs: bounded scratch, cache-sized on CPU
         self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
@@ -640,6 +645,63 @@ class Slicer:
             torch.round(f, out=i0)
             near.add_(i0.mul_(strides[:, c].view(n, 1, 1, 1).float()))
         return idx, tmp_i, tuple(fr)
+
+    def _steps(self, origin, row_step, col_step, pidx, block):
+        """(v0, dvr, dvc): the padded voxel coordinates of each slice's first sample (centre
+        of its first ``block`` of pixels; (N, E, 3)) and the steps per sample down and across
+        ((N, 3) each)."""
+        kz, kx = block
+        sp = self._spacing[pidx]
+        v0 = (
+            origin
+            + (kz - 1) / 2 * row_step[:, None]
+            + (kx - 1) / 2 * col_step[:, None]
+            - self._origin[pidx][:, None]
+        ) / sp[:, None]
+        return v0, kz * row_step / sp, kx * col_step / sp
+
+    def _warp(self, warp, origin, row_step, col_step, pidx) -> torch.Tensor | None:
+        """The warp's shifts on its grid (``DepthWarp.stride`` times coarser than the
+        samples), (N, E, Wc', Hc') in its rows, from the labels there; None: nothing moves.
+        All envs at once, in chunks of ``chunk_samples`` of that grid: the grid is small, and
+        a warp is many short passes."""
+        pr, (kz, kx), (sd, sl) = self.probe, self.block, warp.stride
+        hs, wsub = -(-pr.depth_px // (kz * sd)), -(-pr.width_px // (kx * sl))
+        n, e = len(pidx), pr.elevation_px
+        v0, dvr, dvc = self._steps(origin, row_step, col_step, pidx, (kz * sd, kx * sl))
+        m = torch.arange(hs, device=self.device, dtype=torch.float64)
+        cols = torch.arange(wsub, device=self.device, dtype=torch.float64)
+        out = torch.empty((n, e, wsub, hs), dtype=torch.float32, device=self.device)
+        moved = []
+
+        def run(c: slice, ws: Workspace) -> None:
+            a = (v0[c, :, None, :] + cols[None, None, :, None] * dvc[c, None, None, :]).float()
+            b = (m[None, :, None] * dvr[c, None, :]).float()
+            labels = ws.get("warp_labels", (len(range(n)[c]), e, wsub, hs), torch.uint8)
+            self._labels_at(self._nearest_voxels(a, b, pidx[c], ws), ws, labels)
+            shift = warp(labels, c, ws)
+            moved.append(shift is not None)
+            out[c] = 0.0 if shift is None else shift
+
+        step = max(1, self.chunk_samples // (e * hs * wsub))
+        self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
+        return out if any(moved) else None
+
+    @staticmethod
+    def _upsample_shift(sub, stride, shape, ws: Workspace) -> torch.Tensor:
+        """A warp's shifts ``sub`` (n, E, Wc', Hc', in its rows) at every sample of ``shape``
+        (n, E, Wc, Hc), in samples: linear between the warp's samples (block centres, as the
+        CT is upsampled), held beyond the last."""
+        sd, sl = stride
+        if (sd, sl) == (1, 1):
+            return sub
+        n, e, wsub, hs = sub.shape
+        deep = ws.get("warp_deep", (n, e, wsub, hs * sd), torch.float32)
+        upsample_linear(sub, 3, sd, deep) if sd > 1 else deep.copy_(sub)
+        full = ws.get("warp_full", (n, e, wsub * sl, hs * sd), torch.float32)
+        upsample_linear(deep, 2, sl, full) if sl > 1 else full.copy_(deep)
+        shift = ws.get("warp_shift", shape, torch.float32)
+        return torch.mul(full[:, :, : shape[2], : shape[3]], sd, out=shift)
 
     def _nearest_voxels(self, a, b, pidx, ws: Workspace) -> torch.Tensor:
         """Flat indices (int32, in ``ws``) of the voxels nearest to the samples at a + b: the
@@ -691,24 +753,15 @@ class Slicer:
         ct_out: torch.Tensor,
         lab_out: torch.Tensor,
         ws: Workspace,
-        warp: DepthWarp | None = None,
-        envs: slice = slice(None),
+        moved: tuple[torch.Tensor, tuple[int, int]] | None = None,
     ) -> None:
         n, e, h, w = ct_out.shape
         kz, kx = self.block
         hc, wc = -(-h // kz), -(-w // kx)
         # Samples at the centres of kz x kx pixel blocks, in padded voxel coordinates, laid out
-        # (N, E, Wc, Hc): depth runs fastest, along the volume's contiguous y axis.
-        org = self._origin[pidx]  # (N, 3)
-        sp = self._spacing[pidx]
-        v0 = (
-            origin
-            + (kz - 1) / 2 * row_step[:, None]
-            + (kx - 1) / 2 * col_step[:, None]
-            - org[:, None]
-        ) / sp[:, None]  # (N, E, 3)
-        dvr = kz * row_step / sp  # (N, 3) per coarse row
-        dvc = kx * col_step / sp  # (N, 3) per coarse column
+        # (N, E, Wc, Hc): depth runs fastest, along the volume's contiguous y axis. v0 (N, E, 3),
+        # dvr and dvc (N, 3) per coarse row and column.
+        v0, dvr, dvc = self._steps(origin, row_step, col_step, pidx, self.block)
         m = torch.arange(hc, device=self.device, dtype=torch.float64)
         l_ = torch.arange(wc, device=self.device, dtype=torch.float64)
         # a: per (env, slice, column), b: per (env, row); coordinate = a + b.
@@ -716,10 +769,8 @@ class Slicer:
         b = (m[None, :, None] * dvr[:, None, :]).float()  # (N, Hc, 3)
         shape = (n, e, wc, hc)
         lab_c = ws.get("lab_c", shape, torch.uint8)
-        shift = None
-        if warp is not None:  # the undeformed labels say how far each sample moves
-            self._labels_at(self._nearest_voxels(a, b, pidx, ws), ws, lab_c)
-            shift = warp(lab_c, envs, ws)
+        # a warp's shift (tissue compression): sample that many samples deeper along the beam
+        shift = None if moved is None else self._upsample_shift(*moved, shape, ws)
         idx, tmp_i, (fx, fy, fz) = self._corners(a, b, shift, dvr, pidx, ws)
         # Labels: nearest voxel.
         self._nearest_labels(ws, lab_c)

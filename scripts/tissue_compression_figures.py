@@ -22,7 +22,7 @@ import torch
 from sonogym.anatomy import load_phantom
 from sonogym.anatomy.labels import BONE_IDS
 from sonogym.ultrasound import ModelBasedSimulator, ProbeGeometry, Slicer
-from sonogym.ultrasound.compression import TissueCompression
+from sonogym.ultrasound.compression import TissueCompression, probe_footprint
 
 
 def first_bone_rows(labels: torch.Tensor) -> np.ndarray:
@@ -75,6 +75,10 @@ def main() -> None:
     probe = ProbeGeometry.linear_2d()
     slicer = Slicer(patient, probe)
     model = TissueCompression(probe, slicer.block)
+    # the beam under the image's centre alone, as the envs' info["compression_mm"] reads it
+    beam = ProbeGeometry(probe.depth_px, 1, 1, probe.depth_spacing, probe.width_spacing)
+    beam_slicer = slicer.sharing(beam, (slicer.block[0], 1))
+    beam_model = TissueCompression(beam, beam_slicer.block, probe_footprint(probe), stride=(1, 1))
     sim = ModelBasedSimulator("physical")
     centre = torch.tensor(patient.landmarks.vertebra("L4").centre[None])
     x, z = patient.skin.aim(centre, torch.tensor([0]))
@@ -83,10 +87,11 @@ def main() -> None:
     print("| force (N) | compression under the centre (mm) | bone rise, median of columns (mm) |")
     print("|---|---|---|")
     for force in args.forces:
-        warp = model.bind(torch.tensor([force]))
-        s = slicer(pos, rot, warp=warp)
+        s = slicer(pos, rot, warp=model.bind(torch.tensor([force])))
         us = sim.simulate(s)[0, 0].numpy()
-        mm = float(warp.centre[0]) * 1e3
+        centre = beam_model.bind(torch.tensor([force]))
+        beam_slicer(pos, rot, warp=centre)
+        mm = float(centre.centre[0]) * 1e3
         rise = np.nanmedian(static_bone - first_bone_rows(s.labels[0, 0])) * probe.depth_spacing
         print(f"| {force:g} | {mm:.2f} | {rise * 1e3:.2f} |")
         path = args.out / f"tissue-compression-{force:g}N.png"

@@ -239,7 +239,7 @@ class PatientScene:
             return torch.zeros_like(self.contact_force[sl])
         slicer, model = self._beam
         warp = model.bind(self.contact_force[sl], MAX_CONTACT_FORCE)
-        slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl], warp=warp)
+        slicer.shifts(self.probe_pos[sl], self.probe_rot[sl], warp, self.patient_index[sl])
         return warp.centre
 
     def reset_force(self, env_ids: torch.Tensor) -> None:

@@ -104,9 +104,10 @@ YOUNG_MODULUS: dict[str, float] = {
     "brain": 40e3,
 }
 
-#: m: the compression is computed on samples about this far apart along and across the beam
-#: (``TissueCompression``'s default ``stride``) and interpolated to the image's: its layers are
-#: of millimetres to centimetres, and its cost falls with the square of the spacing.
+#: m: the compression is computed on beams about this far apart across the image
+#: (``TissueCompression``'s default ``stride``; along each beam at every slicer sample, where
+#: layers and the bone surface need them) and interpolated to the image's columns: the
+#: layers vary slowly across the beams, and the cost falls with the spacing.
 WARP_GRID = 2e-3
 
 #: Tissue classes a beam rests on: the first such sample and everything behind it stay fixed.
@@ -271,7 +272,7 @@ class TissueCompression:
         params: the tissue model.
         device: where the tables live.
         stride: (sd, sl) slicer samples per model sample along and across the beam (default:
-            about ``WARP_GRID`` apart); (1, 1) computes it at every sample.
+            (1, beams about ``WARP_GRID`` apart)); (1, 1) computes it at every sample.
     """
 
     def __init__(
@@ -288,10 +289,7 @@ class TissueCompression:
         self.params = params or CompressionParams()
         self.device = torch.device(device)
         if stride is None:
-            stride = (
-                max(1, round(WARP_GRID / (block[0] * probe.depth_spacing))),
-                max(1, round(WARP_GRID / (block[1] * probe.width_spacing))),
-            )
+            stride = (1, max(1, round(WARP_GRID / (block[1] * probe.width_spacing))))
         #: (sd, sl): slicer samples per model sample (``DepthWarp.stride``)
         self.stride = tuple(int(v) for v in stride)
         kz, kx = self.block[0] * self.stride[0], self.block[1] * self.stride[1]

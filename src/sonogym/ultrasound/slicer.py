@@ -577,16 +577,7 @@ class Slicer:
         """
         check_poses(pos, rot)
         n = pos.shape[0]
-        if patient_index is None:
-            pidx = self.default_patient_index(n)
-        else:
-            pidx = torch.as_tensor(patient_index, device=self.device).long().reshape(-1)
-            if pidx.shape[0] != n:
-                raise ValueError(f"patient_index must have shape ({n},), got {tuple(pidx.shape)}")
-            expect_all(
-                (pidx >= 0) & (pidx < self.num_patients),
-                f"patient_index out of range: the slicer holds {self.num_patients} patients",
-            )
+        pidx = self._patient_index(n, patient_index)
         pr = self.probe
         shape = (n, pr.elevation_px, pr.depth_px, pr.width_px)
         if out is not None and out.ct.shape == shape and out.ct.device == self.device:
@@ -610,6 +601,34 @@ class Slicer:
         # chunks of envs: bounded scratch, cache-sized on CPU
         self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
         return Slices(ct, lab, origin, row_step, col_step, self._seeds[pidx], pidx, pr)
+
+    def shifts(
+        self,
+        pos: torch.Tensor,
+        rot: torch.Tensor,
+        warp: DepthWarp,
+        patient_index: torch.Tensor | None = None,
+    ) -> torch.Tensor | None:
+        """Only the warp's answer for N probe poses: its shifts on its own grid (N, E, Wc',
+        Hc'; ``DepthWarp``), without sampling the images (None: nothing moves). The tissue
+        compression reads its numbers this way (``CompressionWarp.centre``)."""
+        check_poses(pos, rot)
+        pidx = self._patient_index(pos.shape[0], patient_index)
+        origin, row_step, col_step = self._geometry(pos, rot)
+        return self._warp(warp, origin, row_step, col_step, pidx)
+
+    def _patient_index(self, n: int, patient_index) -> torch.Tensor:
+        """(n,) int64 patient of each env, checked (default round-robin)."""
+        if patient_index is None:
+            return self.default_patient_index(n)
+        pidx = torch.as_tensor(patient_index, device=self.device).long().reshape(-1)
+        if pidx.shape[0] != n:
+            raise ValueError(f"patient_index must have shape ({n},), got {tuple(pidx.shape)}")
+        expect_all(
+            (pidx >= 0) & (pidx < self.num_patients),
+            f"patient_index out of range: the slicer holds {self.num_patients} patients",
+        )
+        return pidx
 
     def _corners(self, a, b, shift, dvr, pidx, ws: Workspace):
         """Voxel indices of the samples at a + b (+ shift rows along the beam): the flat index
@@ -700,8 +719,8 @@ class Slicer:
         upsample_linear(sub, 3, sd, deep) if sd > 1 else deep.copy_(sub)
         full = ws.get("warp_full", (n, e, wsub * sl, hs * sd), torch.float32)
         upsample_linear(deep, 2, sl, full) if sl > 1 else full.copy_(deep)
-        shift = ws.get("warp_shift", shape, torch.float32)
-        return torch.mul(full[:, :, : shape[2], : shape[3]], sd, out=shift)
+        full = full[:, :, : shape[2], : shape[3]]  # a view: the samples' own columns and rows
+        return full if sd == 1 else full.mul_(sd)
 
     def _nearest_voxels(self, a, b, pidx, ws: Workspace) -> torch.Tensor:
         """Flat indices (int32, in ``ws``) of the voxels nearest to the samples at a + b: the
@@ -714,10 +733,10 @@ class Slicer:
         idx.copy_(self._offsets[pidx].view(n, 1, 1, 1).expand(shape))
         v = ws.get("v0", shape, torch.float32)
         tmp_i = ws.get("tmp_i", shape, torch.int32)
+        zero = torch.zeros((), device=self.device)
         for c in range(3):
             torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
-            v.round_().clamp_(min=0)
-            torch.minimum(v, top[:, c].view(n, 1, 1, 1), out=v)
+            torch.clamp(v.round_(), zero, top[:, c].view(n, 1, 1, 1), out=v)
             tmp_i.copy_(v)
             if c != 1:
                 tmp_i.mul_(strides[:, c].view(n, 1, 1, 1))

@@ -51,7 +51,10 @@ default.
 and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.
 dx moves along x_U, dy along y_U (both on the skin), dalpha rotates about the normal. The
 surface command (x, z, alpha) stays within ``workspace_half_extent`` of {G} and alpha within
-``yaw_range`` (clamped, documented).
+``yaw_range`` (clamped, documented). ``force_action=True`` (not in the paper) adds a 4th
+component, the change of the probe's contact force (1 N per unit, clipped to +-2 N per step,
+the force kept in [0, 30] N; it starts each episode at ``contact_force``): the tissue under the
+probe compresses (``sonogym.ultrasound.compression``).
 
 **Reward.** r_t = w1 (||p_t|| - ||p_t+1||) + ||q_t|| - ||q_t+1||, with p (mm) and q (axis-angle,
 rad) the pose of {U} in {G} before and after the transition caused by a_t; w1 = 0.045 per mm.
@@ -70,6 +73,9 @@ in [1.5, 3.5] rad; envs spread over the configured patients (env i -> patient i 
 ``info`` every step: ``state`` (N, 6) = (p in m, q in rad) of {U} in {G}; ``command`` (N, 3);
 ``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
 ``reachable`` (N,) bool from the arm; ``cost`` (N,) zeros (no safety constraint in this task).
+With a contact force or a force action: ``contact_force`` (N,) N, ``compression_mm`` (N,) under
+the image's centre, ``force_cost`` (N,) 1 where the force exceeds ``force_limit``, which is then
+also ``cost``.
 """
 
 from __future__ import annotations

@@ -44,7 +44,10 @@ both restricted to the frontal (x, z) plane as in navigation; dalpha rotates abo
 (yaw), dbeta tilts about x_U (docs/design.md, the paper's "pitch"). Documented clamps: the command
 (x, z) stays within ``workspace_half_extent`` (60 mm) of the vertebra's centre, yaw within
 ``yaw_range`` (the navigation arm's workspace, pi +- 2.5 rad), tilt within +-``tilt_limit``
-(0.4 rad).
+(0.4 rad). ``force_action=True`` (not in the paper) adds a 5th component, the change of the
+probe's contact force (1 N per unit, clipped to +-2 N per step, kept in [0, 30] N, from
+``contact_force`` at each reset); it compresses the tissue of the images, not the sensor's
+bone points (bone does not move).
 
 **Reward.** The marginal gain of the trajectory objective (paper, docs/design.md):
 
@@ -73,7 +76,9 @@ the path length of the reached probe positions in mm (as ``path_length``); ``ret
 ``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
 ``coverage`` (N,); ``objective`` (N,) float64, F so far; ``covered_voxels`` (N,) |M|;
 ``visible_points`` / ``sensed_points`` (N,) target surface points in this step's image before
-and after dropout; ``reachable`` (N,) bool; ``cost`` (N,) zeros.
+and after dropout; ``reachable`` (N,) bool; ``cost`` (N,) zeros. With a contact force or a
+force action: ``contact_force`` (N,) N, ``compression_mm`` (N,) under the image's centre,
+``force_cost`` (N,) 1 where the force exceeds ``force_limit``, which is then also ``cost``.
 
 Heuristic: ``heuristic_raster(env)``, the open-loop raster of Li et al. 2023 as the reference
 implements it, timed to the episode.

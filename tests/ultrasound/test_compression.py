@@ -18,6 +18,7 @@ from us_synthetic import (
     SOFT,
     block_patient,
     layered_patient,
+    random_poses,
     straight_down,
 )
 
@@ -243,3 +244,22 @@ def test_the_warp_on_beams_2_mm_apart_agrees_with_the_warp_at_every_sample():
         bone_a, bone_b = a.labels[:, 0] == BONE, b.labels[:, 0] == BONE
         assert torch.equal(bone_a.float().argmax(1), bone_b.float().argmax(1))
         torch.testing.assert_close(wb.centre, wa.centre, rtol=0.02, atol=0.0)
+
+
+def test_pressed_images_have_the_same_bits_alone_in_a_batch_and_on_two_threads():
+    patient = block_patient()
+    sl = Slicer(patient, ProbeGeometry.linear_2d(), chunk_samples=4000)  # several chunks
+    model = TissueCompression(sl.probe, sl.block)
+    pos, rot = random_poses(9, seed=3, max_angle=0.3)
+    force = torch.linspace(0.0, 30.0, 9)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = sl(pos, rot, warp=model.bind(force))
+        torch.set_num_threads(2)
+        two = sl(pos, rot, warp=model.bind(force))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one.ct, two.ct) and torch.equal(one.labels, two.labels)
+    alone = sl(pos[4:5], rot[4:5], warp=model.bind(force[4:5]))
+    assert torch.equal(alone.ct[0], one.ct[4]) and torch.equal(alone.labels[0], one.labels[4])

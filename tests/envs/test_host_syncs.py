@@ -94,6 +94,19 @@ def test_a_step_reads_the_host_only_where_it_must(task, device_mode_checks, monk
     assert sites[("envs/base.py", "step")] == steps  # the autoreset check, once
 
 
+@pytest.mark.parametrize(
+    "task, option", [("navigation", {"force_action": True}), ("surgery", {"contact_force": 10.0})]
+)
+def test_a_step_with_compressed_tissue_reads_no_more(task, option, device_mode_checks,
+                                                       monkeypatch):  # fmt: skip
+    torch.set_num_threads(1)
+    env = make_vec(task, 4, phantom_spacing=0.002, **option)
+    sites, lists = _count_step_reads(env, monkeypatch, 3)
+    assert not lists, f"tolist() in a step: {dict(lists)}"
+    extra = {k: v for k, v in sites.items() if k not in ALLOWED}
+    assert not extra, f"host reads in {task}'s step with {option}: {extra}"
+
+
 def test_a_learned_step_reads_only_the_sizes_of_its_net_groups(device_mode_checks, monkeypatch):
     """With the learned simulator a step adds one read: how many envs each net images (the
     envs of a net run as one batch)."""

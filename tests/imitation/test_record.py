@@ -163,6 +163,14 @@ def test_a_mode_other_than_the_datasets_is_refused_before_anything_is_written(tm
     assert not (tmp_path / "d").exists()
 
 
+def test_a_force_action_is_refused_before_anything_is_written(tmp_path):
+    """The datasets' actions are the task's: a force action would add one they do not name."""
+    with pytest.raises(ValueError, match="force_action adds one they do not name"):
+        rec.record("navigation", tmp_path / "d", episodes=1, envs=1, progress=False,
+                   env_kwargs={"force_action": True}, log=lambda m: None)  # fmt: skip
+    assert not (tmp_path / "d").exists()
+
+
 def test_recipes_are_the_papers_settings():
     nav = rec.dataset_spec("navigation")
     assert [(p.name, p.episodes) for p in nav.recipes] == [

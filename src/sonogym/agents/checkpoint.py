@@ -209,7 +209,7 @@ def check_run_config(cfg: dict) -> None:
     missing += ["learning.obs_scales"] if "obs_scales" not in learning else []
     expect(not missing, f"task_config lacks {missing}")
     expect(isinstance(tc["env_kwargs"], dict), "task_config.env_kwargs must be an object")
-    env_config(cfg["task"], lists_to_tuples(tc["env_kwargs"]))
+    env_cfg = env_config(cfg["task"], lists_to_tuples(tc["env_kwargs"]))
     expect(
         _is_int(tc["obs_downsample"]) and tc["obs_downsample"] >= 1,
         f"task_config.obs_downsample must be an integer >= 1, got {tc['obs_downsample']!r}",
@@ -232,7 +232,9 @@ def check_run_config(cfg: dict) -> None:
         and all(isinstance(sh, list) and all(_is_int(n) and n >= 1 for n in sh) for sh in shapes),
         "obs_layout must hold 'keys' (names) and 'shapes' (lists of sizes >= 1), one per key",
     )
-    box, dim = cfg["action_space"], len(spec.action_names)
+    # a force action (``force_action``) adds one component to the task's
+    box = cfg["action_space"]
+    dim = len(spec.action_names) + int(bool(getattr(env_cfg, "force_action", False)))
     for side in ("low", "high"):
         v = box.get(side) if isinstance(box, dict) else None
         expect(

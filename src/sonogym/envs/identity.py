@@ -11,13 +11,16 @@ env configuration:
 * ``task`` and ``task_version``: the task definition (reward, goal, regions, start
   distribution, episode length), bumped whenever any of them changes (``TaskSpec.version``);
 * ``ultrasound``: the model-based model's name and version, or for the learned simulator each
-  net's name and content digest and the precision it ran in.
+  net's name and content digest and the precision it ran in;
+* ``tissue`` (only when the probe's contact force compresses the tissue: ``contact_force`` > 0
+  or ``force_action``): the compression model's version, the contact force (N) and whether
+  a force action drives it. Results without it imaged static tissue, as the paper did.
 
 Runs (``config.json``), evaluations (``eval*.json``), datasets (``meta/info.json``), reports and
 plots carry it. ``check_one_identity`` refuses to put results of different identities in one
-table: generator, variants and task must agree, and an ultrasound model that appears in several
-results must be the same (model-based and learned rows may sit side by side, as in the paper's
-Table 1).
+table: generator, variants, task and tissue must agree, and an ultrasound model that appears in
+several results must be the same (model-based and learned rows may sit side by side, as in the
+paper's Table 1).
 """
 
 from __future__ import annotations
@@ -73,7 +76,21 @@ def identity(task: str, env_kwargs: Mapping[str, Any] | None = None) -> dict[str
     out["ultrasound"] = ultrasound_identity(
         get("simulator"), get("learned_nets"), get("learned_precision")
     )
+    tissue = tissue_identity(get("contact_force"), get("force_action"))
+    if tissue is not None:
+        out["tissue"] = tissue
     return out
+
+
+def tissue_identity(contact_force, force_action) -> dict[str, Any] | None:
+    """How the probe's contact force compressed the tissue (``sonogym.ultrasound.compression``),
+    or None for static tissue (a contact force of 0 and no force action: the benchmark's)."""
+    from sonogym.ultrasound.compression import COMPRESSION_VERSION
+
+    force, action = float(contact_force or 0.0), bool(force_action)
+    if force == 0.0 and not action:
+        return None
+    return {"version": COMPRESSION_VERSION, "contact_force_n": force, "force_action": action}
 
 
 def differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
@@ -83,7 +100,7 @@ def differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
 
 
 def _definition_differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
-    keys = ("generator_version", "variant_version", "task", "task_version")
+    keys = ("generator_version", "variant_version", "task", "task_version", "tissue")
     return [f"{k} {b.get(k)!r}, not {a.get(k)!r}" for k in keys if a.get(k) != b.get(k)]
 
 
@@ -158,6 +175,11 @@ def stamp(ident: Mapping[str, Any]) -> str:
     if "variant_version" in ident:
         parts.append(f"variants v{ident['variant_version']}")
     parts.append(f"{ident.get('task')} task v{ident.get('task_version')}")
+    tissue = ident.get("tissue")
+    if tissue:
+        how = "force action" if tissue.get("force_action") else "fixed force"
+        parts.append(f"tissue compressed v{tissue.get('version')} "
+                     f"({tissue.get('contact_force_n'):g} N, {how})")  # fmt: skip
     for u in us:
         if not u:
             continue

@@ -33,6 +33,7 @@ import torch
 
 from sonogym.anatomy.landmarks import LandmarkError
 from sonogym.envs.navigation import NavigationEnv, navigation_expert
+from sonogym.envs.probe_scene import hold_force
 from sonogym.geometry import matrix_from_axis_angle, relative_pose
 
 
@@ -100,12 +101,13 @@ class LevelCountingExpert:
             self.reached &= ~torch.as_tensor(env_mask, device=self.reached.device).bool()
 
     def act(self, obs, info) -> torch.Tensor:
-        """(N, 3) actions from ``info``'s ``state`` and ``measured_command`` (the reached z)."""
+        """(N, 3) actions from ``info``'s ``state`` and ``measured_command`` (the reached z);
+        with a force action (N, 4), the force held."""
         state = info["state"]
         self.reached |= info["measured_command"][:, 1] <= self.waypoint_z
         to_goal = self._expert(state)
         to_aim = self._expert(self._state_in_aim(state))
-        return torch.where(self.reached.unsqueeze(-1), to_goal, to_aim)
+        return hold_force(self.env, torch.where(self.reached.unsqueeze(-1), to_goal, to_aim))
 
     def _expert(self, state: torch.Tensor) -> torch.Tensor:
         scale = self.env.cfg.action_scale

@@ -51,7 +51,10 @@ default.
 and clipped per component to ``action_limit`` (6 mm, 6 mm, 0.2 rad), the documented clipping.
 dx moves along x_U, dy along y_U (both on the skin), dalpha rotates about the normal. The
 surface command (x, z, alpha) stays within ``workspace_half_extent`` of {G} and alpha within
-``yaw_range`` (clamped, documented).
+``yaw_range`` (clamped, documented). ``force_action=True`` (not in the paper) adds a 4th
+component, the change of the probe's contact force (1 N per unit, clipped to +-2 N per step,
+the force kept in [0, 30] N; it starts each episode at ``contact_force``): the tissue under the
+probe compresses (``sonogym.ultrasound.compression``).
 
 **Reward.** r_t = w1 (||p_t|| - ||p_t+1||) + ||q_t|| - ||q_t+1||, with p (mm) and q (axis-angle,
 rad) the pose of {U} in {G} before and after the transition caused by a_t; w1 = 0.045 per mm.
@@ -70,6 +73,9 @@ in [1.5, 3.5] rad; envs spread over the configured patients (env i -> patient i 
 ``info`` every step: ``state`` (N, 6) = (p in m, q in rad) of {U} in {G}; ``command`` (N, 3);
 ``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
 ``reachable`` (N,) bool from the arm; ``cost`` (N,) zeros (no safety constraint in this task).
+With a contact force or a force action: ``contact_force`` (N,) N, ``compression_mm`` (N,) under
+the image's centre, ``force_cost`` (N,) 1 where the force exceeds ``force_limit``, which is then
+also ``cost``.
 """
 
 from __future__ import annotations
@@ -83,7 +89,7 @@ import torch
 from gymnasium import spaces
 
 from sonogym.envs.base import SingleEnv
-from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.probe_scene import ProbeScene, hold_force, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     EnvMemory,
@@ -125,6 +131,9 @@ class NavigationConfig(SceneConfig):
     memory_lag: int = 30  # control steps: how old us_memory's (us_scan's) remembered image is
     #: add the reached probe's tilt from the vertical, ``tilt`` (2,), to a Dict observation
     observe_tilt: bool = False
+    #: a 4th action, the change of the probe's contact force (``contact_force``; 1 N per unit,
+    #: at most 2 N per step, kept in [0, 30] N): the tissue under the probe compresses
+    force_action: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()  # check_number_fields: memory_lag is an integer
@@ -244,7 +253,8 @@ class NavigationEnv(TaskEnv):
         if cfg.observe_tilt:
             tilt = spaces.Box(-1.0, 1.0, (2,), np.float32)
             obs_space = spaces.Dict({**obs_space.spaces, "tilt": tilt})
-        self._set_spaces(obs_space, spaces.Box(-bound, bound, (3,), np.float32))
+        n_act = 3 + cfg.force_action
+        self._set_spaces(obs_space, spaces.Box(-bound, bound, (n_act,), np.float32))
         self._state = torch.zeros(n, 6, device=self.device)
         self._prev_state = torch.zeros(n, 6, device=self.device)
         self.scene.randomize_imaging(cfg.imaging_randomization)
@@ -264,6 +274,9 @@ class NavigationEnv(TaskEnv):
 
     def _apply_action(self, actions: torch.Tensor) -> None:
         cfg = self.cfg
+        if cfg.force_action:
+            self.scene.step_force(actions[:, 3])
+            actions = actions[:, :3]
         delta = (actions * self.action_scale).clamp(-self.action_limit, self.action_limit)
         rot = self.scene.probe_rot
         # Tangential motion along x_U and y_U, restricted to the frontal (x, z) plane.
@@ -357,13 +370,17 @@ class NavigationEnv(TaskEnv):
         return {"image": torch.cat(images, 1), "heading": heading.float(), "motion": motion}
 
     def _get_info(self) -> dict:
-        return {
+        info = {
             "state": self._state.clone(),
             "command": self.command.clone(),
             "measured_command": torch.stack(self.scene.measured_command(), -1).float(),
             "reachable": self.scene.reachable.clone(),
             "cost": torch.zeros(self.num_envs, device=self.device),
+            **self.scene.tissue_info(),
         }
+        if "force_cost" in info:  # the task's one safety constraint: the force limit
+            info["cost"] = info["force_cost"].clone()
+        return info
 
     def level_miss(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """1.0 where the reached probe is more than ``LEVEL_MISS_MM`` from {G} along the spine
@@ -399,8 +416,9 @@ def make_single(**kwargs) -> SingleEnv:
 
 
 def expert(env: NavigationEnv, info: dict) -> torch.Tensor:
-    """The paper's expert on ``env`` (``navigation_expert`` from the privileged state)."""
-    return navigation_expert(info["state"], action_scale=env.cfg.action_scale)
+    """The paper's expert on ``env`` (``navigation_expert`` from the privileged state); with a
+    force action, it holds the force."""
+    return hold_force(env, navigation_expert(info["state"], action_scale=env.cfg.action_scale))
 
 
 SPEC = TaskSpec(

@@ -88,7 +88,8 @@ class ProbeScene(PatientScene):
     def reset(self, env_ids: torch.Tensor, cmd: torch.Tensor) -> None:
         """Place the probes of ``env_ids`` at commands ``cmd``: the arm starts from its default
         joints and settles onto the pose (the reference's settle phase); the other envs' arms
-        are not touched."""
+        are not touched. Their contact force starts again at the config's."""
+        self.reset_force(env_ids)
         if self.robot is None:
             pos, rot = self.surface_pose(cmd, env_ids)
             self.probe_pos[env_ids], self.probe_rot[env_ids] = pos, rot
@@ -165,3 +166,11 @@ def probe_track(env, info) -> torch.Tensor:
     if g.shape[1] > 3:
         out.append(torch.rad2deg(m[:, 3] - g[:, 3]))
     return torch.stack(out, -1)
+
+
+def hold_force(env, actions: torch.Tensor) -> torch.Tensor:
+    """``actions`` (N, A) of the task's motion, with a force action of 0 (the force held)
+    appended when ``env`` has one (``force_action``)."""
+    if not getattr(env.cfg, "force_action", False):
+        return actions
+    return torch.cat([actions, torch.zeros_like(actions[:, :1])], -1)

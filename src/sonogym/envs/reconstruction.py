@@ -44,7 +44,10 @@ both restricted to the frontal (x, z) plane as in navigation; dalpha rotates abo
 (yaw), dbeta tilts about x_U (docs/design.md, the paper's "pitch"). Documented clamps: the command
 (x, z) stays within ``workspace_half_extent`` (60 mm) of the vertebra's centre, yaw within
 ``yaw_range`` (the navigation arm's workspace, pi +- 2.5 rad), tilt within +-``tilt_limit``
-(0.4 rad).
+(0.4 rad). ``force_action=True`` (not in the paper) adds a 5th component, the change of the
+probe's contact force (1 N per unit, clipped to +-2 N per step, kept in [0, 30] N, from
+``contact_force`` at each reset); it compresses the tissue of the images, not the sensor's
+bone points (bone does not move).
 
 **Reward.** The marginal gain of the trajectory objective (paper, docs/design.md):
 
@@ -73,7 +76,9 @@ the path length of the reached probe positions in mm (as ``path_length``); ``ret
 ``measured_command`` (N, 4) = (x, z, yaw, tilt) of the reached probe pose (m, rad);
 ``coverage`` (N,); ``objective`` (N,) float64, F so far; ``covered_voxels`` (N,) |M|;
 ``visible_points`` / ``sensed_points`` (N,) target surface points in this step's image before
-and after dropout; ``reachable`` (N,) bool; ``cost`` (N,) zeros.
+and after dropout; ``reachable`` (N,) bool; ``cost`` (N,) zeros. With a contact force or a
+force action: ``contact_force`` (N,) N, ``compression_mm`` (N,) under the image's centre,
+``force_cost`` (N,) 1 where the force exceeds ``force_limit``, which is then also ``cost``.
 
 Heuristic: ``heuristic_raster(env)``, the open-loop raster of Li et al. 2023 as the reference
 implements it, timed to the episode.
@@ -92,7 +97,7 @@ from gymnasium import spaces
 from sonogym.anatomy.labels import BONE_IDS, VERTEBRA_IDS
 from sonogym.anatomy.patient import Patient
 from sonogym.envs.base import SingleEnv
-from sonogym.envs.probe_scene import ProbeScene, probe_track
+from sonogym.envs.probe_scene import ProbeScene, hold_force, probe_track
 from sonogym.envs.scene_config import SceneConfig
 from sonogym.envs.spec import (
     EnvMemory,
@@ -134,6 +139,9 @@ class ReconstructionConfig(SceneConfig):
     voxel_size: float = 0.003  # m (paper)
     w2: float = 0.01  # objective weight per mm of path (paper)
     w3: float = 100.0  # per rad: one radian costs as much as 100 mm of path (docs/design.md)
+    #: a 5th action, the change of the probe's contact force (``contact_force``; 1 N per unit,
+    #: at most 2 N per step, kept in [0, 30] N): the tissue under the probe compresses
+    force_action: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -285,7 +293,8 @@ class ReconstructionEnv(TaskEnv):
             )
         else:
             obs_space = spaces.Box(-np.inf, np.inf, (6,), np.float32)
-        self._set_spaces(obs_space, spaces.Box(-bound, bound, (4,), np.float32))
+        n_act = 4 + cfg.force_action
+        self._set_spaces(obs_space, spaces.Box(-bound, bound, (n_act,), np.float32))
         # Per-env episode state.
         p = size + 2  # stored with a one-voxel empty border (cheap out-of-cube lookups)
         # one slot past the cubes: where points outside every cube are written (no masking)
@@ -345,6 +354,9 @@ class ReconstructionEnv(TaskEnv):
 
     def _apply_action(self, actions: torch.Tensor) -> None:
         cfg = self.cfg
+        if cfg.force_action:
+            self.scene.step_force(actions[:, 4])
+            actions = actions[:, :4]
         delta = (actions * self.action_scale).clamp(-self.action_limit, self.action_limit)
         m = self.tangent_map()
         dxz = (m @ delta[:, :2].unsqueeze(-1)).squeeze(-1)
@@ -472,7 +484,7 @@ class ReconstructionEnv(TaskEnv):
         }
 
     def _get_info(self) -> dict:
-        return {
+        info = {
             "state": self.state(),
             "command": self.command.clone(),
             "measured_command": torch.stack(self.scene.measured_command(), -1).float(),
@@ -483,7 +495,11 @@ class ReconstructionEnv(TaskEnv):
             "sensed_points": self.sensed_points.clone(),
             "reachable": self.scene.reachable.clone(),
             "cost": torch.zeros(self.num_envs, device=self.device),
+            **self.scene.tissue_info(),
         }
+        if "force_cost" in info:  # the task's one safety constraint: the force limit
+            info["cost"] = info["force_cost"].clone()
+        return info
 
     def _episode_metrics(self, env_ids: torch.Tensor) -> dict[str, torch.Tensor]:
         return {
@@ -578,7 +594,7 @@ def heuristic_raster(env: ReconstructionEnv, info: dict | None = None, **kwargs)
         -1,
     )
     scale = torch.tensor(cfg.action_scale, dtype=err.dtype, device=env.device)
-    return (err / scale).clamp(-env.action_bound, env.action_bound)
+    return hold_force(env, (err / scale).clamp(-env.action_bound, env.action_bound))
 
 
 def make_single(**kwargs) -> SingleEnv:

@@ -24,6 +24,7 @@ from sonogym.envs.scene_config import SceneConfig
 from sonogym.memory import return_freed_memory
 from sonogym.ultrasound import ProbeGeometry, Slicer
 from sonogym.ultrasound import randomization as imaging_rand
+from sonogym.ultrasound.compression import MAX_CONTACT_FORCE, TissueCompression, probe_footprint
 from sonogym.ultrasound.registry import SimulatorOptions, check_options
 from sonogym.ultrasound.slicer import PatientCrop
 
@@ -38,6 +39,10 @@ REACH_MARGIN = 0.015
 BOX_MARGIN = 0.005
 #: rad a probe arm may tilt the beam beyond the task's own tilt (tracking, settling).
 ARM_TILT_MARGIN = 0.1
+#: N of contact force per unit of a force action (``force_action``), and the most one step
+#: changes it: a force action's useful range is +-2, as the probe tasks' motion actions' is.
+FORCE_ACTION_SCALE = 1.0
+FORCE_ACTION_LIMIT = 2.0
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,7 @@ class ImagingReach:
     half_extent: float
     tilt: float = 0.0
     aimed: bool = False
+    extra_depth: float = 0.0  # m the images may reach below their last row (tissue compression)
 
 
 def imaging_reach_boxes(
@@ -58,7 +64,8 @@ def imaging_reach_boxes(
 ) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
     """Per patient, the (lo, hi) box of {P} (m) that contains every pixel of every probe image
     within ``reach`` (its face positions widened by ``REACH_MARGIN``, the box by
-    ``BOX_MARGIN``): what a slicer must keep (``Slicer(crop_boxes=)``).
+    ``BOX_MARGIN``, the depth by ``reach.extra_depth``): what a slicer must keep
+    (``Slicer(crop_boxes=)``).
 
     For a face centre s with beam n (unit), a pixel lies at s + d n + q, 0 <= d <= depth and q
     in the plane normal to n with |q| <= r (r: half the diagonal of the array and elevation
@@ -68,6 +75,7 @@ def imaging_reach_boxes(
     half = reach.half_extent + REACH_MARGIN
     u = np.arange(-half, half + grid / 2, grid)
     r = float(np.hypot(probe.width / 2, probe.elevation_px * probe.elevation_spacing / 2))
+    depth = probe.depth + reach.extra_depth
     boxes = []
     for p, c in enumerate(np.asarray(centres, dtype=np.float64)):
         cx, cz = c[0], c[2]
@@ -87,8 +95,8 @@ def imaging_reach_boxes(
         n_lo, n_hi = np.cos(a_hi), np.cos(a_lo)  # range of n_k over the cone
         sin_max = np.where((a_lo <= np.pi / 2) & (a_hi >= np.pi / 2), 1.0,
                            np.maximum(np.sin(a_lo), np.sin(a_hi)))  # fmt: skip
-        lo = s + np.minimum(0, probe.depth * n_lo) - r * sin_max
-        hi = s + np.maximum(0, probe.depth * n_hi) + r * sin_max
+        lo = s + np.minimum(0, depth * n_lo) - r * sin_max
+        hi = s + np.maximum(0, depth * n_hi) + r * sin_max
         boxes.append((lo.min(0) - BOX_MARGIN, hi.max(0) + BOX_MARGIN))
     return boxes
 
@@ -132,6 +140,14 @@ class PatientScene:
         learned_nets, learned_precision = cfg.learned_nets, cfg.learned_precision
         target_vertebra = cfg.target_vertebra
         self.simulator_options = SimulatorOptions(tuple(learned_nets), learned_precision, gel_depth)
+        #: whether the probe's contact force compresses the tissue (``contact_force`` > 0, or a
+        #: force action); off, imaging takes exactly the static model's path
+        self.compresses_tissue = cfg.compresses_tissue
+        self.initial_force = float(cfg.contact_force)  # N
+        self.force_limit = float(cfg.force_limit)  # N
+        if self.compresses_tissue and reach is not None:  # compressed images reach deeper
+            model = TissueCompression(probe)
+            reach = replace(reach, extra_depth=model.max_shift(MAX_CONTACT_FORCE))
         #: the simulator's registry entry (what it needs, how it is built)
         self.simulator_spec = check_options(simulator, self.simulator_options)
         #: whether each env's learned net is drawn at its resets (``draw_nets``): the task
@@ -159,6 +175,8 @@ class PatientScene:
         self.target_centres = self.target_centres_p[self.patient_index].float()
         self.probe_pos = torch.zeros(num_envs, 3, device=device)
         self.probe_rot = torch.eye(3, device=device).repeat(num_envs, 1, 1)
+        #: (N,) float32, N: each env's probe contact force (``initial_force`` at its resets)
+        self.contact_force = torch.full((num_envs,), self.initial_force, device=device)
         #: Per-episode imaging settings (``randomize_imaging``); None: images as simulated.
         self.imaging_randomization: imaging_rand.ImagingRandomization | None = None
         self.imaging_settings: torch.Tensor | None = None
@@ -194,6 +212,60 @@ class PatientScene:
             centres = self.target_centres_p.cpu().numpy()
             boxes = imaging_reach_boxes(self.skin, centres, self.reach, self.probe_geometry)
         return Slicer(self.patients, self.probe_geometry, device=self.device, crop_boxes=boxes)
+
+    @cached_property
+    def tissue(self) -> TissueCompression | None:
+        """The tissue compression on the slicer's sampling grid (None: static tissue)."""
+        if not self.compresses_tissue:
+            return None
+        return TissueCompression(self.probe_geometry, self.slicer.block, device=self.device)
+
+    @cached_property
+    def _beam(self) -> tuple[Slicer, TissueCompression]:
+        """The slicer and compression model of the beam under the image's centre (the
+        compression ``info`` reports, imaged or not)."""
+        pr = self.probe_geometry
+        beam = ProbeGeometry(pr.depth_px, 1, 1, pr.depth_spacing, pr.width_spacing)
+        slicer = self.slicer.sharing(beam, (self.slicer.block[0], 1))
+        model = TissueCompression(beam, slicer.block, probe_footprint(pr), self.tissue.params,
+                                  self.device, (self.tissue.stride[0], 1))  # fmt: skip
+        return slicer, model
+
+    def centre_compression(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """(K,) float32, m: how much the tissue under the image's centre is compressed at the
+        reached probe poses of ``env_ids`` (None: all); zeros with static tissue."""
+        sl = slice(None) if env_ids is None else env_ids
+        if self.tissue is None:
+            return torch.zeros_like(self.contact_force[sl])
+        slicer, model = self._beam
+        warp = model.bind(self.contact_force[sl], MAX_CONTACT_FORCE)
+        slicer.shifts(self.probe_pos[sl], self.probe_rot[sl], warp, self.patient_index[sl])
+        return warp.centre
+
+    def reset_force(self, env_ids: torch.Tensor) -> None:
+        """The contact force of ``env_ids`` back to the config's ``contact_force``."""
+        self.contact_force[env_ids] = self.initial_force
+
+    def step_force(self, action: torch.Tensor) -> None:
+        """One force action (N,) per env, unitless: the force changes by ``FORCE_ACTION_SCALE``
+        N per unit, clipped to +-``FORCE_ACTION_LIMIT`` N per step, and stays within [0,
+        ``MAX_CONTACT_FORCE``] N (documented clamps)."""
+        delta = (action * FORCE_ACTION_SCALE).clamp(-FORCE_ACTION_LIMIT, FORCE_ACTION_LIMIT)
+        self.contact_force = (self.contact_force + delta).clamp(0.0, MAX_CONTACT_FORCE)
+
+    def tissue_info(self) -> dict[str, torch.Tensor]:
+        """What ``info`` reports of the contact force when it compresses the tissue (else
+        nothing): ``contact_force`` (N,) N; ``compression_mm`` (N,), the tissue under the
+        image's centre compressed this much; ``force_cost`` (N,) float32, 1 where the force
+        exceeds ``force_limit``."""
+        if self.tissue is None:
+            return {}
+        force = self.contact_force.clone()
+        return {
+            "contact_force": force,
+            "compression_mm": self.centre_compression() * 1e3,
+            "force_cost": (force > self.force_limit).float(),
+        }
 
     @cached_property
     def simulator(self):
@@ -245,7 +317,10 @@ class PatientScene:
         """CT and label slices at the reached probe poses of ``env_ids`` (None: all), with each
         env's learned net (``Slices.net_index``; the model-based simulators ignore it)."""
         sl = slice(None) if env_ids is None else env_ids
-        s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl])
+        warp = None
+        if self.tissue is not None:
+            warp = self.tissue.bind(self.contact_force[sl], MAX_CONTACT_FORCE)
+        s = self.slicer(self.probe_pos[sl], self.probe_rot[sl], self.patient_index[sl], warp=warp)
         return replace(s, net_index=self.nets.index[sl])
 
     def observe(self, mode: str, env_ids: torch.Tensor | None = None) -> torch.Tensor:

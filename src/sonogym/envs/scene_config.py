@@ -15,6 +15,7 @@ from typing import ClassVar
 
 from sonogym.envs.base import check_number_fields
 from sonogym.envs.imaging import learned_nets_tuple
+from sonogym.ultrasound.compression import MAX_CONTACT_FORCE
 from sonogym.ultrasound.learned.inference import resolve_precision
 from sonogym.ultrasound.randomization import ImagingRandomization, imaging_ranges
 from sonogym.ultrasound.registry import DEFAULT_SIMULATOR, get_simulator
@@ -45,9 +46,21 @@ class SceneConfig:
     device: str = "cpu"  # torch device of every tensor the env returns
     episode_length: int = 300  # control steps (paper: navigation and reconstruction)
     target_vertebra: str = "L4"  # the vertebra the task is about (goal, surface, pedicle)
+    # N, 0 ... 30: the probe presses the skin this hard and the soft tissue under it
+    # compresses (``sonogym.ultrasound.compression``); 0: static tissue, the paper's images.
+    # With ``force_action`` (navigation, reconstruction) the force each episode starts at
+    contact_force: float = 0.0
+    force_limit: float = 20.0  # N: info["force_cost"] is 1 where the applied force exceeds it
 
     def __post_init__(self) -> None:
         check_number_fields(self)
+        if not 0.0 <= self.contact_force <= MAX_CONTACT_FORCE:
+            raise ValueError(
+                f"contact_force must be between 0 and {MAX_CONTACT_FORCE:g} N, got "
+                f"{self.contact_force!r}; 0 keeps the tissue static"
+            )
+        if self.force_limit < 0:
+            raise ValueError(f"force_limit must be >= 0 N, got {self.force_limit!r}")
         object.__setattr__(
             self, "imaging_randomization", imaging_ranges(self.imaging_randomization) or False
         )
@@ -67,3 +80,9 @@ class SceneConfig:
             "learned_precision",
             resolve_precision(self.learned_precision, "learned_precision"),
         )
+
+    @property
+    def compresses_tissue(self) -> bool:
+        """Whether the probe's contact force compresses the tissue (a force, or a force
+        action): the images then differ from the static model's."""
+        return self.contact_force > 0 or bool(getattr(self, "force_action", False))

@@ -105,6 +105,8 @@ fraction of the states p_1 ... p_T in C_free or C_drill; ``return``.
 ``info`` every step: ``state`` (N, 6); ``cost`` (N,); ``region`` (N,) int64 (0 C_free,
 1 C_drill, 2 unsafe); ``safe`` (N,) bool; ``radius`` (N,) planned corridor radius r (m);
 ``tracking_error`` (N,) distance (m) between the commanded and reached tip after the step.
+With ``contact_force`` > 0 (the still probe pressed; not in the paper): ``contact_force``,
+``compression_mm`` under the image's centre and ``force_cost`` (N,), as in navigation.
 """
 
 from __future__ import annotations
@@ -536,6 +538,7 @@ class SurgeryEnv(TaskEnv):
             "safe": self._region != UNSAFE,
             "radius": self.scene.radius.clone(),
             "tracking_error": self._tracking_error.clone(),
+            **self.scene.tissue_info(),
         }
 
     def errors(self, env_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:

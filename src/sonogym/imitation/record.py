@@ -138,6 +138,12 @@ def record(
             f"{task} datasets record the default observation (obs_mode={default_mode!r}), got "
             f"obs_mode={env_kwargs['obs_mode']!r}; leave obs_mode out of the env options"
         )
+    if (env_kwargs or {}).get("force_action"):
+        # the dataset's actions are the task's (spec.action_names); a fixed contact_force is fine
+        raise ValueError(
+            f"{task} datasets record the task's actions {get_task(task).action_names}; "
+            "force_action adds one they do not name: leave it out (a fixed contact_force works)"
+        )
     out = Path(out)
     if resume and not (out / META).is_file():
         raise FileNotFoundError(f"nothing to resume: {out} holds no sonogym recording")

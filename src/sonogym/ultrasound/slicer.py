@@ -35,9 +35,11 @@ images).
 
 from __future__ import annotations
 
+import copy
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -148,6 +150,24 @@ class Slices:
 
 
 _TENSOR_FIELDS = ("ct", "labels", "origin", "row_step", "col_step", "seed", "patient_index")
+
+
+class DepthWarp(Protocol):
+    """Moves a slicer's samples along their beams (``Slicer.__call__(warp=)``; the tissue
+    compression of ``sonogym.ultrasound.compression`` is one).
+
+    It works on a grid ``stride`` = (sd, sl) times coarser than the slicer's samples (blocks of
+    ``Slicer.block`` times ``stride`` pixels, sampled at their centres). Called once per chunk
+    of envs with the labels of that grid, undeformed, (n, E, Wc', Hc') uint8 (depth last), the
+    chunk's env slice and the chunk's scratch ``Workspace``; returns how many of its rows
+    deeper each point shows, (n, E, Wc', Hc') float32 >= 0, at most ``max_rows`` (the crop
+    check's reach), or None: nothing moves. The slicer interpolates that to its samples
+    (linearly, as it upsamples CT). A shift of exactly 0 samples the same point, bit for bit."""
+
+    stride: tuple[int, int]
+    max_rows: int
+
+    def __call__(self, labels: torch.Tensor, envs: slice, ws: Workspace) -> torch.Tensor | None: ...
 
 
 def speckle_seed(patient: Patient) -> int:
@@ -455,15 +475,26 @@ class Slicer:
         self._lim = torch.tensor(np.array(lims), dtype=torch.float64, device=dev)  # (P, 2, 3)
         self.cropped = bool(np.isfinite(np.array(lims)).any())
         self._chunks = ChunkRunner(dev)  # scratch buffers, one set per worker thread
-        min_spacing = min(float(s.min()) for s in sps)
-        pr = self.probe
-        if self.upsample:
-            self.block = (
-                max(1, int(min_spacing / pr.depth_spacing + 1e-6)),
-                max(1, int(min_spacing / pr.width_spacing + 1e-6)),
-            )
-        else:
-            self.block = (1, 1)
+        self._min_spacing = min(float(s.min()) for s in sps)
+        self.block = self._block_for(self.probe)
+
+    def _block_for(self, probe: ProbeGeometry) -> tuple[int, int]:
+        """(kz, kx) pixels per sample of ``probe``'s grid (module docstring)."""
+        if not self.upsample:
+            return (1, 1)
+        return (
+            max(1, int(self._min_spacing / probe.depth_spacing + 1e-6)),
+            max(1, int(self._min_spacing / probe.width_spacing + 1e-6)),
+        )
+
+    def sharing(self, probe: ProbeGeometry, block: tuple[int, int] | None = None) -> Slicer:
+        """A slicer of another pixel grid over this one's volumes (shared, not copied), with
+        ``block`` pixels per sample (None: as this slicer would choose)."""
+        other = copy.copy(self)
+        other.probe = probe
+        other.block = tuple(block) if block is not None else self._block_for(probe)
+        other._chunks = ChunkRunner(self.device)
+        return other
 
     @property
     def num_patients(self) -> int:
@@ -487,11 +518,12 @@ class Slicer:
         """Round-robin assignment of n envs to the patients (env i -> patient i % P)."""
         return torch.arange(n, device=self.device) % self.num_patients
 
-    def _check_in_crop(self, origin, row_step, col_step, pidx) -> None:
-        """Every image plane's corners inside its patient's crop box (on the cut sides): the
-        images are convex, so then every pixel is."""
+    def _check_in_crop(self, origin, row_step, col_step, pidx, extra_rows: int = 0) -> None:
+        """Every image plane's corners, the bottom ones ``extra_rows`` deeper (a warp's reach),
+        inside its patient's crop box (on the cut sides): the images are convex, so then every
+        pixel is."""
         pr = self.probe
-        down = (pr.depth_px - 1) * row_step[:, None, None, :]  # (N, 1, 1, 3)
+        down = (pr.depth_px - 1 + extra_rows) * row_step[:, None, None, :]  # (N, 1, 1, 3)
         across = (pr.width_px - 1) * col_step[:, None, None, :]
         o = origin[:, :, None, :]  # (N, E, 1, 3)
         corners = torch.cat([o, o + down, o + across, o + down + across], 2)  # (N, E, 4, 3)
@@ -526,6 +558,7 @@ class Slicer:
         rot: torch.Tensor,
         patient_index: torch.Tensor | None = None,
         out: Slices | None = None,
+        warp: DepthWarp | None = None,
     ) -> Slices:
         """Slice N probe poses.
 
@@ -535,22 +568,16 @@ class Slicer:
             patient_index: (N,) int, which patient each env images (default round-robin).
             out: a previous result whose ct and labels tensors are overwritten (saves
                 allocating them on every call).
+            warp: sample deeper along each beam (``DepthWarp``: tissue compressed under the
+                probe, ``sonogym.ultrasound.compression``); None samples the image planes as
+                they are (the same code as without it).
 
         Returns:
             ``Slices`` with ct (N, E, H, W) float32 HU and labels (N, E, H, W) uint8.
         """
         check_poses(pos, rot)
         n = pos.shape[0]
-        if patient_index is None:
-            pidx = self.default_patient_index(n)
-        else:
-            pidx = torch.as_tensor(patient_index, device=self.device).long().reshape(-1)
-            if pidx.shape[0] != n:
-                raise ValueError(f"patient_index must have shape ({n},), got {tuple(pidx.shape)}")
-            expect_all(
-                (pidx >= 0) & (pidx < self.num_patients),
-                f"patient_index out of range: the slicer holds {self.num_patients} patients",
-            )
+        pidx = self._patient_index(n, patient_index)
         pr = self.probe
         shape = (n, pr.elevation_px, pr.depth_px, pr.width_px)
         if out is not None and out.ct.shape == shape and out.ct.device == self.device:
@@ -559,50 +586,57 @@ class Slicer:
             ct = torch.empty(shape, dtype=torch.float32, device=self.device)
             lab = torch.empty(shape, dtype=torch.uint8, device=self.device)
         origin, row_step, col_step = self._geometry(pos, rot)
-        if self.cropped:
-            self._check_in_crop(origin, row_step, col_step, pidx)
         kz, kx = self.block
+        if self.cropped:
+            extra = 0 if warp is None else warp.max_rows * warp.stride[0] * kz
+            self._check_in_crop(origin, row_step, col_step, pidx, extra)
         per_env = pr.elevation_px * -(-pr.depth_px // kz) * -(-pr.width_px // kx)
         step = max(1, self.chunk_samples // per_env)
+        moved = None if warp is None else self._warp(warp, origin, row_step, col_step, pidx)
 
         def run(c: slice, ws: Workspace) -> None:
-            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws)
+            shift = None if moved is None else (moved[c], warp.stride)
+            self._sample(origin[c], row_step[c], col_step[c], pidx[c], ct[c], lab[c], ws, shift)
 
         # chunks of envs: bounded scratch, cache-sized on CPU
         self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
         return Slices(ct, lab, origin, row_step, col_step, self._seeds[pidx], pidx, pr)
 
-    def _sample(
+    def shifts(
         self,
-        origin: torch.Tensor,
-        row_step: torch.Tensor,
-        col_step: torch.Tensor,
-        pidx: torch.Tensor,
-        ct_out: torch.Tensor,
-        lab_out: torch.Tensor,
-        ws: Workspace,
-    ) -> None:
-        n, e, h, w = ct_out.shape
-        kz, kx = self.block
-        hc, wc = -(-h // kz), -(-w // kx)
-        # Samples at the centres of kz x kx pixel blocks, in padded voxel coordinates, laid out
-        # (N, E, Wc, Hc): depth runs fastest, along the volume's contiguous y axis.
-        org = self._origin[pidx]  # (N, 3)
-        sp = self._spacing[pidx]
-        v0 = (
-            origin
-            + (kz - 1) / 2 * row_step[:, None]
-            + (kx - 1) / 2 * col_step[:, None]
-            - org[:, None]
-        ) / sp[:, None]  # (N, E, 3)
-        dvr = kz * row_step / sp  # (N, 3) per coarse row
-        dvc = kx * col_step / sp  # (N, 3) per coarse column
-        m = torch.arange(hc, device=self.device, dtype=torch.float64)
-        l_ = torch.arange(wc, device=self.device, dtype=torch.float64)
-        # a: per (env, slice, column), b: per (env, row); coordinate = a + b.
-        a = (v0[:, :, None, :] + l_[None, None, :, None] * dvc[:, None, None, :]).float()
-        b = (m[None, :, None] * dvr[:, None, :]).float()  # (N, Hc, 3)
-        shape = (n, e, wc, hc)
+        pos: torch.Tensor,
+        rot: torch.Tensor,
+        warp: DepthWarp,
+        patient_index: torch.Tensor | None = None,
+    ) -> torch.Tensor | None:
+        """Only the warp's answer for N probe poses: its shifts on its own grid (N, E, Wc',
+        Hc'; ``DepthWarp``), without sampling the images (None: nothing moves). The tissue
+        compression reads its numbers this way (``CompressionWarp.centre``)."""
+        check_poses(pos, rot)
+        pidx = self._patient_index(pos.shape[0], patient_index)
+        origin, row_step, col_step = self._geometry(pos, rot)
+        return self._warp(warp, origin, row_step, col_step, pidx)
+
+    def _patient_index(self, n: int, patient_index) -> torch.Tensor:
+        """(n,) int64 patient of each env, checked (default round-robin)."""
+        if patient_index is None:
+            return self.default_patient_index(n)
+        pidx = torch.as_tensor(patient_index, device=self.device).long().reshape(-1)
+        if pidx.shape[0] != n:
+            raise ValueError(f"patient_index must have shape ({n},), got {tuple(pidx.shape)}")
+        expect_all(
+            (pidx >= 0) & (pidx < self.num_patients),
+            f"patient_index out of range: the slicer holds {self.num_patients} patients",
+        )
+        return pidx
+
+    def _corners(self, a, b, shift, dvr, pidx, ws: Workspace):
+        """Voxel indices of the samples at a + b (+ shift rows along the beam): the flat index
+        of each sample's lower corner (``idx``, int32), the offset of its nearest corner
+        (``near``, float32) and the fractions toward the upper corners per axis, all in ``ws``.
+        Returns (idx, an int32 scratch, (fx, fy, fz))."""
+        n, e, wc = a.shape[:3]
+        shape = (n, e, wc, b.shape[1])
         dmax = self._dmax[pidx]  # (N, 3)
         strides = self._strides[pidx]  # (N, 3) int32
         idx = ws.get("idx", shape, torch.int32)
@@ -615,6 +649,8 @@ class Slicer:
             v = ws.get(f"v{c}", shape, torch.float32)
             i0 = ws.get("i0", shape, torch.float32)
             torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
+            if shift is not None:  # x + 0 * step = x: an unmoved sample keeps its bits
+                v.addcmul_(shift, dvr[:, c].float().view(n, 1, 1, 1))
             torch.floor(v, out=i0)
             i0.clamp_(min=0)
             torch.minimum(i0, dmax[:, c].view(n, 1, 1, 1), out=i0)
@@ -627,10 +663,96 @@ class Slicer:
             # nearest corner: + stride where the fraction >= 0.5
             torch.round(f, out=i0)
             near.add_(i0.mul_(strides[:, c].view(n, 1, 1, 1).float()))
-        fx, fy, fz = fr
-        # Labels: nearest voxel.
-        tmp_i.copy_(near).add_(idx)
-        lab_c = ws.get("lab_c", shape, torch.uint8)
+        return idx, tmp_i, tuple(fr)
+
+    def _steps(self, origin, row_step, col_step, pidx, block):
+        """(v0, dvr, dvc): the padded voxel coordinates of each slice's first sample (centre
+        of its first ``block`` of pixels; (N, E, 3)) and the steps per sample down and across
+        ((N, 3) each)."""
+        kz, kx = block
+        sp = self._spacing[pidx]
+        v0 = (
+            origin
+            + (kz - 1) / 2 * row_step[:, None]
+            + (kx - 1) / 2 * col_step[:, None]
+            - self._origin[pidx][:, None]
+        ) / sp[:, None]
+        return v0, kz * row_step / sp, kx * col_step / sp
+
+    def _warp(self, warp, origin, row_step, col_step, pidx) -> torch.Tensor | None:
+        """The warp's shifts on its grid (``DepthWarp.stride`` times coarser than the
+        samples), (N, E, Wc', Hc') in its rows, from the labels there; None: nothing moves.
+        All envs at once, in chunks of ``chunk_samples`` of that grid: the grid is small, and
+        a warp is many short passes."""
+        pr, (kz, kx), (sd, sl) = self.probe, self.block, warp.stride
+        hs, wsub = -(-pr.depth_px // (kz * sd)), -(-pr.width_px // (kx * sl))
+        n, e = len(pidx), pr.elevation_px
+        v0, dvr, dvc = self._steps(origin, row_step, col_step, pidx, (kz * sd, kx * sl))
+        m = torch.arange(hs, device=self.device, dtype=torch.float64)
+        cols = torch.arange(wsub, device=self.device, dtype=torch.float64)
+        out = torch.empty((n, e, wsub, hs), dtype=torch.float32, device=self.device)
+        moved = []
+
+        def run(c: slice, ws: Workspace) -> None:
+            a = (v0[c, :, None, :] + cols[None, None, :, None] * dvc[c, None, None, :]).float()
+            b = (m[None, :, None] * dvr[c, None, :]).float()
+            labels = ws.get("warp_labels", (len(range(n)[c]), e, wsub, hs), torch.uint8)
+            self._labels_at(self._nearest_voxels(a, b, pidx[c], ws), ws, labels)
+            shift = warp(labels, c, ws)
+            moved.append(shift is not None)
+            out[c] = 0.0 if shift is None else shift
+
+        step = max(1, self.chunk_samples // (e * hs * wsub))
+        self._chunks.run(run, [slice(s, min(n, s + step)) for s in range(0, n, step)])
+        return out if any(moved) else None
+
+    @staticmethod
+    def _upsample_shift(sub, stride, shape, ws: Workspace) -> torch.Tensor:
+        """A warp's shifts ``sub`` (n, E, Wc', Hc', in its rows) at every sample of ``shape``
+        (n, E, Wc, Hc), in samples: linear between the warp's samples (block centres, as the
+        CT is upsampled), held beyond the last."""
+        sd, sl = stride
+        if (sd, sl) == (1, 1):
+            return sub
+        n, e, wsub, hs = sub.shape
+        deep = ws.get("warp_deep", (n, e, wsub, hs * sd), torch.float32)
+        upsample_linear(sub, 3, sd, deep) if sd > 1 else deep.copy_(sub)
+        full = ws.get("warp_full", (n, e, wsub * sl, hs * sd), torch.float32)
+        upsample_linear(deep, 2, sl, full) if sl > 1 else full.copy_(deep)
+        full = full[:, :, : shape[2], : shape[3]]  # a view: the samples' own columns and rows
+        return full if sd == 1 else full.mul_(sd)
+
+    def _nearest_voxels(self, a, b, pidx, ws: Workspace) -> torch.Tensor:
+        """Flat indices (int32, in ``ws``) of the voxels nearest to the samples at a + b: the
+        labels a warp reads (half-way ties may round the other way than ``_corners``')."""
+        n, e, wc = a.shape[:3]
+        shape = (n, e, wc, b.shape[1])
+        top = self._dmax[pidx] + 1  # (N, 3) the last voxel, the border's
+        strides = self._strides[pidx]
+        idx = ws.get("nearest", shape, torch.int32)
+        idx.copy_(self._offsets[pidx].view(n, 1, 1, 1).expand(shape))
+        v = ws.get("v0", shape, torch.float32)
+        tmp_i = ws.get("tmp_i", shape, torch.int32)
+        zero = torch.zeros((), device=self.device)
+        for c in range(3):
+            torch.add(a[..., c, None], b[:, None, None, :, c], out=v)
+            torch.clamp(v.round_(), zero, top[:, c].view(n, 1, 1, 1), out=v)
+            tmp_i.copy_(v)
+            if c != 1:
+                tmp_i.mul_(strides[:, c].view(n, 1, 1, 1))
+            idx.add_(tmp_i)
+        return idx
+
+    def _nearest_labels(self, ws: Workspace, lab_c: torch.Tensor) -> None:
+        """The labels of the nearest voxels of the samples ``_corners`` just indexed."""
+        shape = lab_c.shape
+        tmp_i = ws.get("tmp_i", shape, torch.int32)
+        tmp_i.copy_(ws.get("near", shape, torch.float32)).add_(ws.get("idx", shape, torch.int32))
+        self._labels_at(tmp_i, ws, lab_c)
+
+    def _labels_at(self, voxels: torch.Tensor, ws: Workspace, lab_c: torch.Tensor) -> None:
+        """Label ids of flat voxel indices ``voxels`` (int32; overwritten) into ``lab_c``."""
+        shape, tmp_i = lab_c.shape, voxels
         if self.labels_packed:
             scratch = (
                 ws.get("lab_i0", shape, torch.int32),
@@ -640,8 +762,40 @@ class Slicer:
             gather_labels(self._nibbles, self._palette, tmp_i, lab_c, scratch)
         else:
             torch.index_select(self._lab, 0, tmp_i.view(-1), out=lab_c.view(-1))
+
+    def _sample(
+        self,
+        origin: torch.Tensor,
+        row_step: torch.Tensor,
+        col_step: torch.Tensor,
+        pidx: torch.Tensor,
+        ct_out: torch.Tensor,
+        lab_out: torch.Tensor,
+        ws: Workspace,
+        moved: tuple[torch.Tensor, tuple[int, int]] | None = None,
+    ) -> None:
+        n, e, h, w = ct_out.shape
+        kz, kx = self.block
+        hc, wc = -(-h // kz), -(-w // kx)
+        # Samples at the centres of kz x kx pixel blocks, in padded voxel coordinates, laid out
+        # (N, E, Wc, Hc): depth runs fastest, along the volume's contiguous y axis. v0 (N, E, 3),
+        # dvr and dvc (N, 3) per coarse row and column.
+        v0, dvr, dvc = self._steps(origin, row_step, col_step, pidx, self.block)
+        m = torch.arange(hc, device=self.device, dtype=torch.float64)
+        l_ = torch.arange(wc, device=self.device, dtype=torch.float64)
+        # a: per (env, slice, column), b: per (env, row); coordinate = a + b.
+        a = (v0[:, :, None, :] + l_[None, None, :, None] * dvc[:, None, None, :]).float()
+        b = (m[None, :, None] * dvr[:, None, :]).float()  # (N, Hc, 3)
+        shape = (n, e, wc, hc)
+        lab_c = ws.get("lab_c", shape, torch.uint8)
+        # a warp's shift (tissue compression): sample that many samples deeper along the beam
+        shift = None if moved is None else self._upsample_shift(*moved, shape, ws)
+        idx, tmp_i, (fx, fy, fz) = self._corners(a, b, shift, dvr, pidx, ws)
+        # Labels: nearest voxel.
+        self._nearest_labels(ws, lab_c)
         # CT: trilinear from the 8 corners (pairs along the contiguous y axis).
         vol = self._ct
+        strides = self._strides[pidx]  # (N, 3) int32
         g16 = ws.get("g16", shape, torch.float16)
         lo = ws.get("lo", shape, torch.float32)
         hi = ws.get("hi", shape, torch.float32)

@@ -14,8 +14,10 @@ state observations, ``--net lean``), alternating ``--rounds`` times in one proce
   (``TrainResult.speed``): its env-steps/s, the learner's share of its loop's wall time
   (everything but the env's steps) and the updates' share.
 
-"training / env" is the training's env-steps/s over the env's own (the budget: >= 0.7).
-Medians over the rounds. Then the parts of one update, timed on a rollout the run's own
+"training / env" is the training's env-steps/s over the env's own (the budget: >= 0.7), by
+wall time and by CPU time (the process's; steadier than wall time on a machine other jobs
+share: a single-threaded run's wall time there is 1.5-2x its CPU time, unevenly). Medians
+over the rounds. Then the parts of one update, timed on a rollout the run's own
 policy collected (CPU seconds, median of 3): the mini-batch passes forward (policy and value
 share one encoder pass), backward, gradient clipping and the Adam step, cumulatively
 measured. Prints one table; ``--baseline`` adds the training env-steps/s ratio to a saved
@@ -53,8 +55,9 @@ def config(recipe: str, envs: int, threads: int, steps: int):
     )
 
 
-def env_alone(cfg, steps: int) -> float:
-    """env-steps/s of the run's env and adapter stepping with uniform random actions."""
+def env_alone(cfg, steps: int) -> tuple[float, float]:
+    """(env-steps per wall second, per CPU second) of the run's env and adapter stepping with
+    uniform random actions."""
     from sonogym.agents.adapter import SkrlEnvAdapter
     from sonogym.agents.train import make_env
 
@@ -80,20 +83,23 @@ def env_alone(cfg, steps: int) -> float:
         for _ in range(2):
             adapter.step(act())
         actions = [act() for _ in range(steps)]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for a in actions:
             adapter.step(a)
-        return n * steps / (time.perf_counter() - t0)
+        return n * steps / (time.perf_counter() - t0), n * steps / (time.process_time() - c0)
     finally:
         env.close()
 
 
 def training(cfg) -> dict[str, float]:
-    from sonogym.agents.train import run_training
+    """The run's ``TrainResult.speed`` and "per_cpu_s": env-steps per CPU second of its loop
+    (``times.json``)."""
+    from sonogym.agents.train import read_times, run_training
 
     with tempfile.TemporaryDirectory() as d:
         res = run_training(cfg, Path(d) / "run", progress=False, log=lambda m: None)
-    return res.speed
+        cpu_s = read_times(res.out / "checkpoints")[res.steps]["cpu_s"]
+    return {**res.speed, "per_cpu_s": res.steps * cfg.rl.num_envs / cpu_s}
 
 
 def update_parts(cfg, repeats: int = 3) -> dict[str, float]:
@@ -179,7 +185,9 @@ def main() -> None:
         parts = update_parts(cfg)
         rows.append({
             "recipe": recipe, "envs": args.envs, "threads": args.threads,
-            "env_alone": statistics.median(alone), "training": med["env_steps_per_s"],
+            "env_alone": statistics.median(a[0] for a in alone), "training": med["env_steps_per_s"],
+            "env_alone_cpu": statistics.median(a[1] for a in alone),
+            "training_cpu": med["per_cpu_s"],
             "learner_share": med["learner_share"], "update_share": med["update_share"],
             "update_s": med["update_s"] / args.updates, **{f"{k}_s": v for k, v in parts.items()},
         })  # fmt: skip
@@ -191,10 +199,10 @@ def main() -> None:
           f"alternations; load average {load0} -> {load1}")  # fmt: skip
     print(
         "| recipe | envs | threads | env alone env-steps/s | training env-steps/s | "
-        "training / env | learner | updates | update s (wall) | forward / + backward / "
-        "+ clip / + Adam (CPU s) | vs baseline |"
+        "training / env | same, per CPU s | learner | updates | update s (wall) | forward / "
+        "+ backward / + clip / + Adam (CPU s) | vs baseline |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         b = base.get(r["recipe"])
         ratio = f"{r['training'] / b['training']:.2f}x" if b else "-"
@@ -202,6 +210,8 @@ def main() -> None:
         print(
             f"| {r['recipe']} | {r['envs']} | {r['threads']} | {r['env_alone']:.0f} | "
             f"{r['training']:.0f} | {r['training'] / r['env_alone']:.2f} | "
+            f"{r['training_cpu']:.0f} / {r['env_alone_cpu']:.0f} = "
+            f"{r['training_cpu'] / r['env_alone_cpu']:.2f} | "
             f"{100 * r['learner_share']:.0f}% | {100 * r['update_share']:.0f}% | "
             f"{r['update_s']:.2f} | {parts} | {ratio} |"
         )

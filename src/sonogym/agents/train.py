@@ -463,7 +463,7 @@ class TrainingSpeed:
     writes, plus acting, recording, checkpoints and logging).
 
     The env's share is also the run's speed against the env's own (the same envs stepping
-    alone would take the env's seconds only), so ``env_alone`` estimates the env's own
+    alone would take the env's seconds only), so ``env_alone_per_s`` estimates the env's own
     env-steps/s at the run's env count and threads. Wall time: on a shared machine other
     tenants slow both parts."""
 

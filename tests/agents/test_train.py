@@ -29,8 +29,7 @@ def _tiny(task, algo, out, steps, env_kwargs_extra=None, **kw):
         patients=(0,),
         obs_downsample=2 if task == "navigation" else 1,
         env_kwargs=dict(FAST_ENV, episode_length=20, **(env_kwargs_extra or {})),
-        progress=False,
-        **kw,
+        **{"progress": False, **kw},
     )
 
 
@@ -435,3 +434,75 @@ def test_privileged_critic_refuses_single_sample_mini_batches(tmp_path):
     with pytest.raises(ValueError, match="needs >= 2 samples per mini-batch"):
         _tiny("navigation", "a2c", tmp_path / "run", steps=32, settings={"privileged_critic": True})
     assert not (tmp_path / "run").exists()  # refused before anything was built or written
+
+
+def test_training_speed_figures_from_its_clock():
+    """env-steps/s, the env's own speed and the learner's share follow from the loop's, the
+    env's and the updates' seconds (a fake clock: no wall-clock asserts)."""
+    from sonogym.agents.train import TrainingSpeed
+
+    now = [100.0]
+    speed = TrainingSpeed(64, clock=lambda: now[0])
+    for _ in range(32):
+        speed.add_step(env_s=0.05, update_s=0.0)
+    speed.add_step(env_s=0.05, update_s=1.2)  # the step whose post_interaction updated
+    now[0] += 4.0  # 33 steps: 1.65 s env, 1.2 s update, 1.15 s acting and the rest
+    f = speed.figures()
+    assert f["loop_s"] == pytest.approx(4.0) and f["env_s"] == pytest.approx(1.65)
+    assert f["env_steps_per_s"] == pytest.approx(33 * 64 / 4.0)
+    assert f["env_alone_per_s"] == pytest.approx(33 * 64 / 1.65)
+    assert f["learner_share"] == pytest.approx(1 - 1.65 / 4.0)
+    assert f["update_share"] == pytest.approx(0.3)
+    assert speed.postfix() == {"env-steps/s": "528", "learner": "59%"}
+    line = speed.summary()
+    assert line.startswith("528 env-steps/s (33 steps x 64 envs in 4 s)")
+    assert "1280 env-steps/s alone" in line and "0.41x the env's speed" in line
+    assert "the learner 59% (updates 30%, acting, recording and checkpoints 29%)" in line
+
+
+def test_speed_reporting_leaves_training_bit_identical(tmp_path):
+    """A run prints its speed (the progress line and the last line) and records the loop's,
+    the env's and the updates' seconds in times.json; none of it touches what training
+    computes: the same seeded run with and without the display gives equal checkpoints."""
+    from sonogym.agents.train import read_times
+
+    quiet = _tiny("surgery", "ppo", tmp_path / "quiet", steps=64, checkpoint_interval=32)
+    lines = []
+    shown = _tiny(
+        "surgery", "ppo", tmp_path / "shown", steps=64, checkpoint_interval=32,
+        log=lines.append, progress=True,
+    )  # fmt: skip
+    for t in (0, 32, 64):
+        a = torch.load(quiet.out / "checkpoints" / f"agent_{t}.pt", weights_only=True)
+        b = torch.load(shown.out / "checkpoints" / f"agent_{t}.pt", weights_only=True)
+        ta, tb = _tensors(a), _tensors(b)
+        assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
+    assert any("env-steps/s (64 steps x 2 envs in" in line for line in lines)
+    assert shown.speed["env_steps_per_s"] > 0 and 0 < shown.speed["learner_share"] < 1
+    times = read_times(shown.out / "checkpoints")
+    for t in (32, 64):
+        e = times[t]
+        assert 0 < e["env_s"] and 0 < e["update_s"] and e["env_s"] + e["update_s"] <= e["loop_s"]
+    assert times[64]["loop_s"] > times[32]["loop_s"]
+
+
+def test_times_written_before_the_speed_figures_still_read(tmp_path):
+    from sonogym.agents.train import RunClock, read_times
+
+    (tmp_path / "times.json").write_text(json.dumps({"32": {"cpu_s": 1.5, "wall_s": 2.0}}))
+    assert read_times(tmp_path) == {32: {"cpu_s": 1.5, "wall_s": 2.0}}
+    clock = RunClock(tmp_path, 32)  # a resume from it counts its loop seconds from 0
+    assert clock.loop0 == {"loop_s": 0.0, "env_s": 0.0, "update_s": 0.0}
+
+
+def _tensors(state, prefix=""):
+    """{dotted name: tensor} of a checkpoint's nested state (optimiser state included)."""
+    out = {}
+    items = state.items() if isinstance(state, dict) else enumerate(state)
+    for k, v in items:
+        name = f"{prefix}{k}"
+        if isinstance(v, torch.Tensor):
+            out[name] = v
+        elif isinstance(v, (dict, list, tuple)):
+            out.update(_tensors(v, name + "."))
+    return out

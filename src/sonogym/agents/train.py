@@ -87,6 +87,7 @@ class TrainResult:
     out: Path  # run directory
     checkpoint: Path  # the final checkpoint
     steps: int  # env steps per env done in total (including resumed ones)
+    speed: dict[str, float] | None = None  # this session's ``TrainingSpeed.figures()``
 
 
 def make_env(cfg: TaskRLConfig, num_envs: int, device: str | torch.device):
@@ -376,6 +377,7 @@ def _train_loop(
         _announce(cfg, out, start, log, agent, adapter, obs)
     clock = RunClock(ckpt_dir, start, inherited=_spent_before(cfg.init_from, run.dagger))
     bar = progress_bar(steps, f"{task}/{algo}", initial=start, unit="step", enabled=progress)
+    speed = TrainingSpeed(cfg.rl.num_envs)
     done = start
     recent = _EpisodeMeans()
     learning = to_jsonable(cfg.rl.learning)
@@ -385,18 +387,20 @@ def _train_loop(
             if cfg.rl.learning.kl_follows_sigma and getattr(agent, "scheduler", None) is not None:
                 agent.scheduler.kl_threshold = kl_threshold_at(cfg.params, cfg.rl.learning, t)
             adapter.update_stats = statistics_update(cfg.rl, t)
-            obs = _step(agent, adapter, obs, t, steps, recent)
+            obs = _step(agent, adapter, obs, t, steps, recent, speed)
             done = t + 1
+            if done % cfg.params.rollouts == 0:  # an update ran: the figures include one
+                bar.set_postfix(**speed.postfix())
             if done % run.ckpt_interval == 0 and done < steps:
                 path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
-                clock.record(done)
+                clock.record(done, speed)
                 if on_checkpoint is not None:
                     on_checkpoint(done, path, recent.pop())
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         path = save_agent(agent, ckpt_dir / f"agent_{done}.pt")
-        clock.record(done)
+        clock.record(done, speed)
         msg = (
             f"interrupted after {done} of {steps} steps; saved {path}. Resume with: sonogym "
             f"train --task {task} --algo {algo} --out {out} --resume"
@@ -408,20 +412,28 @@ def _train_loop(
             agent.writer.flush()
     bar.close()
     final = save_agent(agent, ckpt_dir / f"agent_{steps}.pt")
-    clock.record(steps)
+    clock.record(steps, speed)
+    if done > start:
+        log(speed.summary())
     if on_checkpoint is not None:
         on_checkpoint(steps, final, recent.pop())
-    return TrainResult(out=out, checkpoint=final, steps=steps)
+    return TrainResult(out=out, checkpoint=final, steps=steps, speed=speed.figures())
 
 
-def _step(agent, adapter: SkrlEnvAdapter, obs, t: int, steps: int, recent: _EpisodeMeans):
+def _step(
+    agent, adapter: SkrlEnvAdapter, obs, t: int, steps: int, recent: _EpisodeMeans,
+    speed: TrainingSpeed,
+):  # fmt: skip
     """One env step of the policy and what the agent records of it (its update, when one is
-    due, runs in ``post_interaction``); the next observation."""
+    due, runs in ``post_interaction``); the next observation. ``speed`` counts the env's and
+    the update's wall seconds."""
     agent.pre_interaction(timestep=t, timesteps=steps)
     with torch.no_grad():
         states = adapter.state()  # None unless the critic is privileged
         actions, _ = agent.act(obs, states, timestep=t, timesteps=steps)
+        t0 = time.perf_counter()
         next_obs, reward, terminated, truncated, info = adapter.step(actions)
+        t1 = time.perf_counter()
         agent.record_transition(
             observations=obs,
             states=states,
@@ -437,45 +449,126 @@ def _step(agent, adapter: SkrlEnvAdapter, obs, t: int, steps: int, recent: _Epis
         )
         _track_episode_metrics(agent, info)
         recent.add(info)
+    t2 = time.perf_counter()
     agent.post_interaction(timestep=t, timesteps=steps)
+    speed.add_step(env_s=t1 - t0, update_s=time.perf_counter() - t2)
     return next_obs
+
+
+class TrainingSpeed:
+    """How fast a training session runs and where its wall time goes: env-steps/s (env steps
+    of all envs per second of the loop) and the shares of the loop's wall time spent in the
+    env's steps (``SkrlEnvAdapter.step``: simulation and observations) and in the learner
+    (everything else: the updates, which run in ``post_interaction`` with skrl's TensorBoard
+    writes, plus acting, recording, checkpoints and logging).
+
+    The env's share is also the run's speed against the env's own (the same envs stepping
+    alone would take the env's seconds only), so ``env_alone_per_s`` estimates the env's own
+    env-steps/s at the run's env count and threads. Wall time: on a shared machine other
+    tenants slow both parts."""
+
+    def __init__(self, num_envs: int, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.num_envs = int(num_envs)
+        self.clock = clock
+        self.start = clock()
+        self.steps = 0  # env steps per env this session
+        self.env_s = 0.0
+        self.update_s = 0.0
+
+    def add_step(self, env_s: float, update_s: float) -> None:
+        self.steps += 1
+        self.env_s += env_s
+        self.update_s += update_s
+
+    def figures(self) -> dict[str, float]:
+        """{"loop_s", "env_s", "update_s", "env_steps_per_s", "env_alone_per_s",
+        "learner_share", "update_share"} of this session so far (shares of the loop's wall
+        time, 0-1)."""
+        loop = max(self.clock() - self.start, 1e-9)
+        n = self.steps * self.num_envs
+        return {
+            "loop_s": loop,
+            "env_s": self.env_s,
+            "update_s": self.update_s,
+            "env_steps_per_s": n / loop,
+            "env_alone_per_s": n / self.env_s if self.env_s > 0 else 0.0,
+            "learner_share": 1.0 - min(self.env_s / loop, 1.0),
+            "update_share": min(self.update_s / loop, 1.0),
+        }
+
+    def postfix(self) -> dict[str, str]:
+        """The progress line's speed entries (``env-steps/s=851, learner=44%``)."""
+        f = self.figures()
+        return {"env-steps/s": f"{f['env_steps_per_s']:.0f}",
+                "learner": f"{100 * f['learner_share']:.0f}%"}  # fmt: skip
+
+    def summary(self) -> str:
+        """The line a run ends with: its speed, the env's alone and the learner's share."""
+        f = self.figures()
+        env_share = 1.0 - f["learner_share"]
+        rest = max(f["learner_share"] - f["update_share"], 0.0)
+        return (
+            f"{f['env_steps_per_s']:.0f} env-steps/s ({self.steps} steps x {self.num_envs} "
+            f"envs in {f['loop_s']:.0f} s): the env {100 * env_share:.0f}% of the wall time "
+            f"({f['env_alone_per_s']:.0f} env-steps/s alone, so training runs at "
+            f"{env_share:.2f}x the env's speed), the learner {100 * f['learner_share']:.0f}% "
+            f"(updates {100 * f['update_share']:.0f}%, acting, recording and checkpoints "
+            f"{100 * rest:.0f}%)"
+        )
 
 
 class RunClock:
     """CPU and wall seconds a run has spent by each checkpoint, across resumes:
-    ``checkpoints/times.json`` = {env steps: {"cpu_s", "wall_s"}} (CPU: this process's, all its
-    threads; what a model card reports as the training's cost). A run started from another
-    run's checkpoint (``inherited``: its ``init_from``) counts that run's seconds up to the
-    checkpoint too, and a DAgger warm start its own: the figures are the policy's cost from
-    random weights."""
+    ``checkpoints/times.json`` = {env steps: {"cpu_s", "wall_s", "loop_s", "env_s",
+    "update_s"}} (CPU: this process's, all its threads; what a model card reports as the
+    training's cost). A run started from another run's checkpoint (``inherited``: its
+    ``init_from``) counts that run's seconds up to the checkpoint too, and a DAgger warm start
+    its own: the figures are the policy's cost from random weights. ``loop_s``, ``env_s`` and
+    ``update_s`` are this run's own training loop, its env steps and its updates (wall
+    seconds, ``TrainingSpeed``): the env-steps/s between two checkpoints is their step
+    difference x envs / ``loop_s`` difference, the learner's share 1 - ``env_s`` / ``loop_s``."""
 
     FILE = "times.json"
+    COSTS = ("cpu_s", "wall_s")
+    LOOP = ("loop_s", "env_s", "update_s")
 
     def __init__(self, ckpt_dir: Path, start: int, inherited: dict | None = None) -> None:
         self.path = Path(ckpt_dir) / self.FILE
         self.times = read_times(ckpt_dir)
-        zero = {k: float((inherited or {}).get(k) or 0.0) for k in ("cpu_s", "wall_s")}
+        zero = {k: float((inherited or {}).get(k) or 0.0) for k in self.COSTS}
         base = self.times.get(start, zero)
         # a resume continues from its checkpoint's totals; later entries were overtaken
         self.times = {t: v for t, v in self.times.items() if t <= start}
         self.cpu0, self.wall0 = time.process_time() - base["cpu_s"], time.time() - base["wall_s"]
+        self.loop0 = {k: base.get(k, 0.0) for k in self.LOOP}
 
-    def record(self, step: int) -> None:
-        self.times[step] = {
+    def record(self, step: int, speed: TrainingSpeed | None = None) -> None:
+        entry = {
             "cpu_s": round(time.process_time() - self.cpu0, 1),
             "wall_s": round(time.time() - self.wall0, 1),
         }
+        if speed is not None:
+            f = speed.figures()
+            entry.update({k: round(self.loop0[k] + f[k], 1) for k in self.LOOP})
+        self.times[step] = entry
         atomic_write_json(self.path, {str(t): v for t, v in sorted(self.times.items())})
 
 
 def read_times(ckpt_dir: str | Path) -> dict[int, dict[str, float]]:
-    """A run's ``checkpoints/times.json`` as {env steps: {"cpu_s", "wall_s"}} ({} if absent)."""
+    """A run's ``checkpoints/times.json`` as {env steps: {"cpu_s", "wall_s"} and, where
+    recorded, "loop_s", "env_s", "update_s"} ({} if absent or unreadable)."""
     path = Path(ckpt_dir) / RunClock.FILE
     try:
         raw = json.loads(path.read_text())
-        return {int(t): {k: float(v[k]) for k in ("cpu_s", "wall_s")} for t, v in raw.items()}
+        return {int(t): _times_entry(v) for t, v in raw.items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}
+
+
+def _times_entry(v: dict) -> dict[str, float]:
+    entry = {k: float(v[k]) for k in RunClock.COSTS}  # KeyError: not a times.json entry
+    entry.update({k: float(v[k]) for k in RunClock.LOOP if k in v})
+    return entry
 
 
 def _spent_before(*sources: dict[str, Any] | None) -> dict[str, float]:

@@ -100,6 +100,11 @@ def test_done_commands_are_skipped_partial_ones_resume_and_reports_follow(tmp_pa
     _touch(tmp_path / "runs/il/checkpoints/step_000000300.pt")
     assert R.status(il) == "done"
 
+    select = R._step("sonogym select --run runs/x --patients 900-904")
+    assert R.status(select) == "todo"
+    _touch(tmp_path / "runs/x/selection.json", "{}")
+    assert R.status(select) == "done"
+
     sweep = R._step("sonogym sweep --task navigation --algo ppo --seeds 3 --out runs/sw")
     assert R.status(sweep) == "todo"
     _touch(tmp_path / "runs/sw/sweep.json", "{}")  # started, interrupted before its summary

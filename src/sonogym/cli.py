@@ -713,7 +713,10 @@ def eval_(
     ] = 1,
     checkpoint: Annotated[
         Path | None,
-        typer.Option(help="Checkpoint to evaluate (default: the run's newest readable one)."),
+        typer.Option(
+            help="Checkpoint to evaluate: a file, or 'selected' (the one `sonogym select` "
+            "chose); default the run's newest readable one."
+        ),
     ] = None,
     filter_mode: Annotated[
         str | None,

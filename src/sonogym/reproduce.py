@@ -69,7 +69,7 @@ def _step(command: str, cpu_min: float = 0.0) -> Step:
 
 #: CPU minutes of a command without a measured figure: an evaluation of 100 episodes on 50
 #: envs, a report or a plot.
-DEFAULT_CPU_MINUTES = {"eval": 3.0, "report": 1.0, "plot": 1.0}
+DEFAULT_CPU_MINUTES = {"eval": 3.0, "select": 10.0, "report": 1.0, "plot": 1.0}
 
 
 def _steps(commands: Sequence[str], cpu_min: dict[str, float]) -> list[Step]:
@@ -170,9 +170,13 @@ _RECIPES = (
             "--steps 6400 --checkpoint-every 1600 "
             "--init-from runs/nav-pop64-scan-s0/checkpoints/agent_23552.pt "
             "--out runs/nav-pop64-lobes-ft-s0",
-            "sonogym eval --run runs/nav-pop64-lobes-ft-s0 --envs 50 --protocol odt-patient "
-            "--held-out 5",
-            "sonogym eval --run runs/nav-pop64-lobes-ft-s0 --envs 50 "
+            # the checkpoint chosen on phantoms and real-derived variants no figure reports
+            "sonogym select --run runs/nav-pop64-lobes-ft-s0 --patients 900-904 "
+            "--patients tests/data/totalsegmentator_example@1 "
+            "--patients tests/data/totalsegmentator_example@2 --envs 25",
+            "sonogym eval --run runs/nav-pop64-lobes-ft-s0 --checkpoint selected --envs 50 "
+            "--protocol odt-patient --held-out 5",
+            "sonogym eval --run runs/nav-pop64-lobes-ft-s0 --checkpoint selected --envs 50 "
             "--patients tests/data/totalsegmentator_example --name real-subject",
         ),
     ),
@@ -441,6 +445,10 @@ def status(step: Step) -> str:
     cmd, out = step.argv[0], _out(step)
     if cmd == "eval":
         return "done" if _eval_table(step).is_file() else "todo"
+    if cmd == "select":
+        from sonogym.evaluation.selection import SELECTION
+
+        return "done" if (out / SELECTION).is_file() else "todo"
     if cmd == "sweep" and not (out / _FINAL_FILE[cmd]).is_file():
         from sonogym.agents.sweep import SWEEP_FILE
 
@@ -489,7 +497,7 @@ def to_run(steps: Sequence[Step]) -> list[tuple[Step, str]]:
         st = status(s)
         if pending and s.argv[0] in ("report", "plot"):
             st = "todo"
-        if s.argv[0] == "eval" and st != "todo" and _out(s) in remade:
+        if s.argv[0] in ("eval", "select") and st != "todo" and _out(s) in remade:
             st = "todo"  # its run is trained again: the table would be of the old one
         if s.argv[0] in ("train", "il-train") and st != "done":
             remade.add(_out(s))

@@ -3,11 +3,12 @@ makes for a cohort seed, or to a shipped net's weights, fails here unless it com
 version (``GENERATOR_VERSION``; a net's new digest in the model card).
 
 The fingerprint (``tests/data/cohort_fingerprint.json``) holds, for every seed of the benchmark
-cohort (training phantoms 0-4, held-out 5-9, the population 100-163), a digest of what the
-generator draws from the seed (``PhantomParams.resolved`` and the per-level variation), and for
-three phantoms built at the tests' 2 mm the voxel count of every label; the slow test builds every
-cohort phantom. After a deliberate change (version bumped), write a new fingerprint:
-``python tests/anatomy/test_cohort_fingerprint.py`` (all seeds at 2 mm: ~8 CPU min).
+cohort (training phantoms 0-4, held-out 5-9, the population 100-163, the selection phantoms
+900-904), a digest of what the generator draws from the seed (``PhantomParams.resolved`` and
+the per-level variation), and for three phantoms built at the tests' 2 mm the voxel count of
+every label; the slow test builds every cohort phantom. After a deliberate change (version
+bumped), write a new fingerprint: ``python tests/anatomy/test_cohort_fingerprint.py`` (all
+seeds at 2 mm: ~8 CPU min).
 """
 
 from __future__ import annotations
@@ -22,15 +23,17 @@ import pytest
 
 from sonogym.anatomy import PhantomParams, make_phantom
 from sonogym.anatomy.phantom import GENERATOR_VERSION, _level_variation
-from sonogym.evaluation.cohort import HELD_OUT_PATIENTS, TRAIN_PATIENTS
+from sonogym.evaluation.cohort import HELD_OUT_PATIENTS, SELECTION_PATIENTS, TRAIN_PATIENTS
 from sonogym.ultrasound.learned.shipped import NUM_SHIPPED, net_digests
 
 FINGERPRINT = Path(__file__).resolve().parents[1] / "data" / "cohort_fingerprint.json"
 DOCS_CARD = Path(__file__).resolve().parents[2] / "docs" / "learned_model_card.json"
 SPACING = 0.002  # m, the tests' phantoms
-#: every cohort seed: training, held-out (5 and the 5-9 of the population evaluation) and the
-#: population the shipped navigation policy trains on
-COHORT = sorted({*TRAIN_PATIENTS, *HELD_OUT_PATIENTS, *range(5, 10), *range(100, 164)})
+#: every cohort seed: training, held-out (5 and the 5-9 of the population evaluation), the
+#: population the shipped navigation policy trains on and the checkpoint-selection phantoms
+COHORT = sorted(
+    {*TRAIN_PATIENTS, *HELD_OUT_PATIENTS, *range(5, 10), *range(100, 164), *SELECTION_PATIENTS}
+)
 #: built in the default test run (one training, one held-out, one population phantom)
 BUILT = (0, 5, 100)
 #: label voxels that may differ between CPUs (float rounding on a surface), per label: a

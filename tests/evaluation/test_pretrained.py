@@ -174,6 +174,12 @@ def test_select_picks_the_best_checkpoint_on_its_patients_and_export_ships_it(ti
     card = P.read_card("nav-sel", tmp_path / "shipped")
     assert card["checkpoint"] == sel["selected"]
     assert card["selection"]["patients"] == ["3"] and card["selection"]["trials"] == 4
+    # `eval --checkpoint selected` evaluates the chosen one
+    args = ["eval", "--run", str(run), "--checkpoint", "selected", "--trials", "2", "--envs", "2",
+            "--controllers", "policy", "--patients", "4", "--name", "sel"]  # fmt: skip
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "eval-sel.json").read_text())["checkpoint"] == sel["selected"]
     # an evaluation of that checkpoint on a selection patient is not a test: refused
     leak = {"protocol": "custom", "trials": 4, "seed": 1, "checkpoint": sel["selected"],
             "env_overrides": {"patients": [3]}, "results": {}}  # fmt: skip

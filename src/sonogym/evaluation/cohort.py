@@ -10,6 +10,9 @@ the training seeds. ``POPULATION_PATIENTS`` = seeds 100-131: the 32 training pha
 population study (policies trained across many patients, tested on held-out ones; CLI
 ``--patients 100-131``). Phantom seeds >= ``LEARNED_DATA_SEEDS`` (1000) are the learned
 simulator's training phantoms (``sonogym lb-data``) and are not handed out as patients either.
+``SELECTION_PATIENTS`` = seeds 900-904: phantoms for choosing a checkpoint (``sonogym
+select``), apart from every training and held-out seed, so that no reported figure comes from
+a patient the checkpoint was chosen on.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ HELD_OUT_PATIENTS: tuple[int, ...] = (5,)
 LEARNED_DATA_SEEDS = 1000
 #: The population study's training phantoms (seeds 100-131), apart from every held-out seed.
 POPULATION_PATIENTS: tuple[int, ...] = tuple(range(100, 132))
+#: Phantoms for checkpoint selection (seeds 900-904): never trained on, never reported.
+SELECTION_PATIENTS: tuple[int, ...] = tuple(range(900, 905))
 
 
 def held_out(n: int = 1) -> tuple[int, ...]:

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sonogym.evaluation.selection import read_selection, tested_on_selection
+from sonogym.evaluation.selection import read_selection, resolve_checkpoint, tested_on_selection
 from sonogym.runs import (
     SHIPPED_WEIGHTS,
     RunFolder,
@@ -130,6 +130,7 @@ def export_pretrained(
     run = Path(run)
     cfg = run_config(run)
     selection = read_selection(run)
+    checkpoint = resolve_checkpoint(run, checkpoint)  # "selected": sonogym select's choice
     if checkpoint is None and selection is not None:
         checkpoint = run / "checkpoints" / selection["selected"]  # sonogym select's choice
     if checkpoint is None:

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from sonogym.evaluation.selection import resolve_checkpoint
 from sonogym.evaluation.trained import TrainedRun, load_run, newest_checkpoint, run_policy
 from sonogym.runs import atomic_write_text, to_jsonable
 
@@ -67,10 +68,11 @@ def evaluate_run(
     """{controller: {metric: (mean, std)}} over ``trials`` episodes each (see module doc).
 
     ``run``: an RL run (``sonogym train``) or an IL run (``sonogym il-train``, on a dataset
-    ``sonogym record`` wrote). ``checkpoint``: the checkpoint to evaluate (default: the run's
-    newest readable one; an unreadable newer RL checkpoint is skipped with a warning naming
-    it). ``controllers``: by default the policy, the controllers its algorithm adds (a
-    ``ppo-sf`` run's ``unfiltered``), the expert and random. ``safety_filter``: test-time
+    ``sonogym record`` wrote). ``checkpoint``: the checkpoint to evaluate (``"selected"``: the
+    one ``sonogym select`` chose; default: the run's newest readable one; an unreadable newer
+    RL checkpoint is skipped with a warning naming it). ``controllers``: by default the
+    policy, the controllers its algorithm adds (a ``ppo-sf`` run's ``unfiltered``), the expert
+    and random. ``safety_filter``: test-time
     settings of the run's algorithm (``Acting.settings``; a ``ppo-sf`` run's filter, keys
     ``mode`` ("search" / "zero") and/or ``threshold``; default: the run's); the filter acts
     only at test time, so one trained run can be tested with several.
@@ -94,7 +96,7 @@ def evaluate_run(
         raise ValueError(f"name {name!r}: use letters, digits, '_' and '-' only")
     trained = load_run(run)
     controllers = check_controllers(trained, controllers)
-    checkpoint = Path(checkpoint) if checkpoint is not None else newest_checkpoint(trained)
+    checkpoint = resolve_checkpoint(trained.path, checkpoint) or newest_checkpoint(trained)
     proto = get_protocol(protocol or "idt", held_out_patients)
     trials = proto.trials if trials is None else trials
     seed = proto.seed if seed is None else seed

@@ -106,6 +106,24 @@ def selection_markdown(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: ``checkpoint`` value that names the checkpoint ``sonogym select`` chose.
+SELECTED = "selected"
+
+
+def resolve_checkpoint(run: str | Path, checkpoint: str | Path | None) -> Path | None:
+    """``checkpoint`` as a path: ``"selected"`` is the run's selected one (``selection.json``;
+    an error when the run has none), anything else is returned as given."""
+    if checkpoint is None or str(checkpoint) != SELECTED:
+        return None if checkpoint is None else Path(checkpoint)
+    selection = read_selection(run)
+    if selection is None:
+        raise FileNotFoundError(
+            f"--checkpoint selected: {run} has no {SELECTION}; run sonogym select --run {run} "
+            "--patients ... first"
+        )
+    return Path(run) / "checkpoints" / selection["selected"]
+
+
 def read_selection(run: str | Path) -> dict[str, Any] | None:
     """A run's ``selection.json`` (None when it has none)."""
     path = Path(run) / SELECTION

@@ -121,7 +121,7 @@ def test_demo_runs_a_shipped_policy_beside_the_expert(tiny_run, tmp_path, monkey
 
     monkeypatch.setattr(demo, "make_vec", small_env)
     results = demo.run_demo(tmp_path / "demo", num_envs=2, tasks=("navigation",), log=print)
-    assert built == [None, (0,)]  # the shipped policy runs on the expert's phantom 0
+    assert built == [None, (0,)]  # its card reports no test patients: the expert's phantom 0
     assert set(results) == {"navigation", "navigation_pretrained-nav-test"}
     shipped = results["navigation_pretrained-nav-test"]
     assert shipped["controller"] == "pretrained nav-test"
@@ -131,6 +131,21 @@ def test_demo_runs_a_shipped_policy_beside_the_expert(tiny_run, tmp_path, monkey
         "| navigation | pretrained nav-test | position_error_mm |"
         in (tmp_path / "demo" / "metrics.md").read_text()
     )
+
+
+def test_the_demo_shows_the_shipped_navigation_policy_as_its_model_card_does(tmp_path):
+    from sonogym.evaluation import demo
+
+    results = demo.run_demo(tmp_path / "demo", num_envs=1, tasks=("navigation",), log=print)
+    shown = results["navigation_pretrained-navigation"]
+    card = shown["model_card"]
+    # a fair sample: the card's own test patients (held out from training), 16 starts
+    assert shown["patients"] == [str(p) for p in card["patients"]]
+    assert shown["envs"] == demo.POLICY_EPISODES
+    mean, _ = shown["metrics"]["position_error_mm"]
+    card_mean, card_std = card["metrics"]["position_error_mm"]
+    assert abs(mean - card_mean) <= card_std, (mean, card_mean, card_std)
+    assert "model card (odt-patient" in (tmp_path / "demo" / "metrics.md").read_text()
 
 
 def test_the_shipped_navigation_policy_loads_weights_only_and_acts():

@@ -36,7 +36,8 @@ def run_demo(
     """Run the demo and return the metrics table (also written to ``out``). ``patients``:
     phantom seeds and/or TotalSegmentator subject folders (default: the tasks' phantom 0).
     Where a trained policy of a task ships with sonogym (``sonogym eval --pretrained list``),
-    it runs the same episode starts beside the expert."""
+    it runs beside the expert on its model card's test patients (``patients`` if given), at
+    least ``POLICY_EPISODES`` episodes, and its card's figures are printed beside its own."""
     from sonogym.evaluation import pretrained as shipped
 
     out = Path(out)
@@ -47,31 +48,58 @@ def run_demo(
         task = get_task(name)
         env = make_vec(name, num_envs, **over)
         runs = [(name, task.expert_label, env, ExpertPolicy(env, task.expert))]
+        cards = {}
         for policy_name in shipped.available():
             run = load_run(shipped.pretrained_dir(policy_name))
             if run.task != name:
                 continue
-            # on the expert's patients (not the policy's training cohort), as evaluation images
-            penv = make_vec(
-                name, num_envs, **run.evaluation_env_kwargs({"patients": env.cfg.patients})
-            )
+            # a fair sample: the model card's first test patients (never the policy's training
+            # cohort), POLICY_EPISODES starts, images as evaluated; --patients overrides them
+            card = card_figures(shipped.read_card(policy_name))
+            test = patients or (card["patients"] if card else env.cfg.patients)
+            n = max(num_envs, POLICY_EPISODES)
+            penv = make_vec(name, n, **run.evaluation_env_kwargs({"patients": tuple(test)}))
             policy = run_policy(run, penv, shipped.weights(policy_name))
-            runs.append((f"{name}_pretrained-{policy_name}", f"pretrained {policy_name}", penv,
-                         policy))  # fmt: skip
+            key = f"{name}_pretrained-{policy_name}"
+            runs.append((key, f"pretrained {policy_name}", penv, policy))
+            cards[key] = card
         for key, label, e, policy in runs:
             t0 = time.perf_counter()
             final, sheet, frames = _episode(e, policy, seed, name)
             metrics = {k: _mean_std(final[k]) for k in (*task.metric_keys, "return")}
-            results[key] = {"controller": label, "envs": num_envs,
+            results[key] = {"controller": label, "envs": e.num_envs,
+                            "patients": [str(p) for p in e.cfg.patients],
                             "seconds": time.perf_counter() - t0, "metrics": metrics}  # fmt: skip
             _write_sheet(out / f"{key}_frames.png", sheet, f"{name} ({label})")
             _write_video(out / f"{key}.mp4", frames)
-            log(f"{name} ({label}): "
-                + ", ".join(f"{k} {m:.2f} ± {s:.2f}" for k, (m, s) in metrics.items()))  # fmt: skip
+            log(f"{name} ({label}, {e.num_envs} episodes): {_figures(metrics)}")
+            card = cards.get(key)
+            if card:
+                results[key]["model_card"] = card
+                where = f"{card['evaluation']}, {card['trials']} episodes"
+                log(f"  its model card ({where}): {_figures(card['metrics'])}")
     atomic_write_text(out / "metrics.json", json.dumps(results, indent=1))
     atomic_write_text(out / "metrics.md", _markdown(results))
     log(f"wrote {out}/metrics.md, metrics.json, *_frames.png, *.mp4")
     return results
+
+
+#: Episodes a shipped policy runs in the demo (at least): enough starts that its mean is a
+#: fair sample of what its model card reports, still a few seconds of the demo.
+POLICY_EPISODES = 16
+
+
+def card_figures(card: dict) -> dict | None:
+    """The figures the demo shows beside a shipped policy's: its model card's first
+    evaluation on named test patients (name, patients, trials, policy's mean and std per
+    metric); None when the card has none."""
+    for name, e in (card.get("evaluations") or {}).items():
+        patients = (e.get("test_env") or {}).get("patients")
+        if patients:
+            pol = e["results"].get("policy", {})
+            return {"evaluation": name, "patients": list(patients), "trials": e.get("trials"),
+                    "metrics": {k: tuple(v) for k, v in pol.items() if k != "return"}}  # fmt: skip
+    return None
 
 
 def _episode(env, policy, seed: int, name: str):
@@ -101,6 +129,10 @@ def _write_video(path: Path, frames: list[np.ndarray], fps: int = 30) -> None:
     with imageio.get_writer(path, fps=fps, codec="libx264", quality=7) as w:
         for f in frames:
             w.append_data(f)
+
+
+def _figures(metrics: dict) -> str:
+    return ", ".join(f"{k} {m:.2f} ± {s:.2f}" for k, (m, s) in metrics.items())
 
 
 def _mean_std(values) -> tuple[float, float]:
@@ -136,4 +168,8 @@ def _markdown(results: dict) -> str:
         task = key.split("_pretrained-")[0]
         for k, (m, s) in r["metrics"].items():
             lines.append(f"| {task} | {r['controller']} | {k} | {m:.3f} | {s:.3f} |")
+        card = r.get("model_card")
+        for k, (m, s) in (card["metrics"] if card else {}).items():
+            who = f"{r['controller']}: model card ({card['evaluation']}, {card['trials']} episodes)"
+            lines.append(f"| {task} | {who} | {k} | {m:.3f} | {s:.3f} |")
     return "\n".join(lines) + "\n"

@@ -62,6 +62,11 @@ def select_checkpoint(
     for step, path in found:
         if not path.is_file():
             raise FileNotFoundError(f"checkpoint {path} not found")
+        if path.parent.resolve() != (trained.path / "checkpoints").resolve():
+            raise ValueError(
+                f"checkpoint {path} is not one of {trained.path}/checkpoints: select among the "
+                "run's own checkpoints (the selection names it there)"
+            )
         log(f"select: {path.name} on {len(patients)} patients, {trials} episodes")
         results = evaluate_run(
             trained.path, trials=trials, envs=envs, seed=seed, device=device,
@@ -133,12 +138,13 @@ def read_selection(run: str | Path) -> dict[str, Any] | None:
 def tested_on_selection(selection: dict[str, Any], evaluations: dict[str, dict]) -> list[str]:
     """The evaluations (name -> card entry with ``test_env``) that test on a patient the
     checkpoint was selected on, each with the patients in common."""
-    chosen = set(selection["patients"])
+    from sonogym.evaluation.cohort import overlap
+
     out = []
     for name, e in evaluations.items():
         test = e.get("test_env", {}).get("patients") or ()
         test = [test] if isinstance(test, int | str) else test
-        common = sorted(chosen & {str(p) for p in test})
+        common = overlap(selection["patients"], test)
         if common:
-            out.append(f"{name} (patients {', '.join(common)})")
+            out.append(f"{name} (patients {', '.join(map(str, common))})")
     return out

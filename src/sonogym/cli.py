@@ -831,7 +831,8 @@ def select(
     there and the best mean of the metric wins (<run>/selection.json, selection.md; each
     evaluation in <run>/selection/). `sonogym export` then ships that checkpoint and refuses
     a model card that reports a figure on a selection patient."""
-    from sonogym.evaluation.selection import select_checkpoint, selection_markdown
+    from sonogym.evaluation.checkpoint_selection import select_checkpoint
+    from sonogym.evaluation.selection import selection_markdown
 
     _check_positive(("--trials", trials), ("--envs", envs))
     try:

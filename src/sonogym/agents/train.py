@@ -87,7 +87,7 @@ class TrainResult:
     out: Path  # run directory
     checkpoint: Path  # the final checkpoint
     steps: int  # env steps per env done in total (including resumed ones)
-    speed: dict[str, float] | None = None  # this session's ``TrainingSpeed.figures()``
+    speed: dict[str, float] | None = None  # ``TrainingSpeed.figures()`` since start or resume
 
 
 def make_env(cfg: TaskRLConfig, num_envs: int, device: str | torch.device):
@@ -456,7 +456,7 @@ def _step(
 
 
 class TrainingSpeed:
-    """How fast a training session runs and where its wall time goes: env-steps/s (env steps
+    """How fast a training process runs and where its wall time goes: env-steps/s (env steps
     of all envs per second of the loop) and the shares of the loop's wall time spent in the
     env's steps (``SkrlEnvAdapter.step``: simulation and observations) and in the learner
     (everything else: the updates, which run in ``post_interaction`` with skrl's TensorBoard
@@ -471,7 +471,7 @@ class TrainingSpeed:
         self.num_envs = int(num_envs)
         self.clock = clock
         self.start = clock()
-        self.steps = 0  # env steps per env this session
+        self.steps = 0  # env steps per env since this process started (or resumed) the run
         self.env_s = 0.0
         self.update_s = 0.0
 
@@ -482,8 +482,8 @@ class TrainingSpeed:
 
     def figures(self) -> dict[str, float]:
         """{"loop_s", "env_s", "update_s", "env_steps_per_s", "env_alone_per_s",
-        "learner_share", "update_share"} of this session so far (shares of the loop's wall
-        time, 0-1)."""
+        "learner_share", "update_share"} since this process started (or resumed) the run
+        (shares of the loop's wall time, 0-1)."""
         loop = max(self.clock() - self.start, 1e-9)
         n = self.steps * self.num_envs
         return {

@@ -382,32 +382,44 @@ class NavigationEnv(TaskEnv):
             info["cost"] = info["force_cost"].clone()
         return info
 
+    def goal_offsets(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, 3) of the reached probe poses relative to {G}: x and z (m; x across the spine,
+        z along it) and wrap(alpha - alpha_G) (rad)."""
+        sl = slice(None) if env_ids is None else env_ids
+        x, z, yaw, _ = self.scene.measured_command(sl)
+        g = self.goal_cmd[sl]
+        return torch.stack([x - g[:, 0], z - g[:, 1], wrap_angle(yaw - g[:, 2])], -1)
+
     def level_miss(self, env_ids: torch.Tensor | None = None) -> torch.Tensor:
         """1.0 where the reached probe is more than ``LEVEL_MISS_MM`` from {G} along the spine
         (z), else 0.0."""
-        sl = slice(None) if env_ids is None else env_ids
-        _, z, _, _ = self.scene.measured_command(sl)
-        return ((z - self.goal_cmd[sl][:, 1]).abs() * 1e3 > LEVEL_MISS_MM).float()
+        return _level_miss(self.goal_offsets(env_ids))
 
     def errors(self, env_ids: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Frontal-plane position error (mm) and |wrap(alpha - alpha_G)| (deg) of the reached
         probe poses."""
-        sl = slice(None) if env_ids is None else env_ids
-        x, z, yaw, _ = self.scene.measured_command(sl)
-        g = self.goal_cmd[sl]
-        pos = torch.stack([x - g[:, 0], z - g[:, 1]], -1).norm(dim=-1) * 1e3
-        ang = wrap_angle(yaw - g[:, 2]).abs() * 180 / math.pi
-        return pos, ang
+        return _errors(self.goal_offsets(env_ids))
 
     def _episode_metrics(self, env_ids: torch.Tensor) -> dict[str, torch.Tensor]:
-        pos, ang = self.errors(env_ids)
-        return {"position_error_mm": pos, "angle_error_deg": ang,
-                "level_miss": self.level_miss(env_ids)}  # fmt: skip
+        offsets = self.goal_offsets(env_ids)
+        pos, ang = _errors(offsets)
+        miss = _level_miss(offsets)
+        return {"position_error_mm": pos, "angle_error_deg": ang, "level_miss": miss}
 
     def _render_frame(self) -> np.ndarray:
         img = self.scene.observe("us", torch.zeros(1, dtype=torch.long, device=self.device))
         g = (img[0, 0].clamp(0, 1) * 255).to(torch.uint8).cpu().numpy()
         return np.repeat(g[..., None], 3, -1)
+
+
+def _errors(offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Frontal-plane distance (mm) and |angle| (deg) of ``goal_offsets``."""
+    return offsets[:, :2].norm(dim=-1) * 1e3, offsets[:, 2].abs() * 180 / math.pi
+
+
+def _level_miss(offsets: torch.Tensor) -> torch.Tensor:
+    """1.0 where ``goal_offsets`` lie more than ``LEVEL_MISS_MM`` from {G} along the spine."""
+    return (offsets[:, 1].abs() * 1e3 > LEVEL_MISS_MM).float()
 
 
 def make_single(**kwargs) -> SingleEnv:
